@@ -1,0 +1,1 @@
+"""Speed benchmarks: medians of repeats, side by side in one run. ``python -m benchmarks [name ...]``."""

@@ -1,0 +1,9 @@
+"""Run benchmarks by name: ``python -m benchmarks`` (all) or ``python -m benchmarks sim``."""
+import importlib
+import sys
+
+ALL = ["sim"]
+
+for name in sys.argv[1:] or ALL:
+    print(f"== {name}")
+    importlib.import_module(f"benchmarks.bench_{name}").main()

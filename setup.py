@@ -1,0 +1,43 @@
+"""ament_python package that also installs with plain pip (no ROS needed)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "topometric_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Drift alarms for LiDAR SLAM without ground truth: plane-based map-consistency metrics (PNE, CPV).",
+    license="Apache-2.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    package_data={PACKAGE: ["segmentation/weights/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "open3d-cpu>=0.19",
+        "rosbags>=0.11,<0.12",
+        "torch>=2.1",
+        "tqdm>=4.60",
+        "matplotlib>=3.6",
+        "pyyaml>=6.0",
+    ],
+    extras_require={
+        "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap>=1.1", "mcap-ros2-support>=0.5",
+                 "evo>=1.20"],
+    },
+    entry_points={
+        "console_scripts": [
+            "topometric = topometric_ros.cli:main",
+            "topometric_monitor = topometric_ros.node:main",
+        ],
+    },
+    zip_safe=False,
+)

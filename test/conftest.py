@@ -1,0 +1,21 @@
+"""Shared fixtures: small simulated bags, made once per test session."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from topometric_ros.sim.drift import DriftSpec
+from topometric_ros.sim.writer import SimConfig, simulate
+
+
+@pytest.fixture(scope="session")
+def office_bag(tmp_path_factory):
+    """A 30-scan office1 bag with rotation+translation drift, MCAP; returns (path, summary)."""
+    path = tmp_path_factory.mktemp("bags") / "office1_rt"
+    cfg = SimConfig(scene="office1", frames=30, rate=5.0, speed=0.8, drift=DriftSpec.parse("rt:1.0"))
+    return path, simulate(cfg, path, progress=False)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)

@@ -1,0 +1,29 @@
+"""topometric_ros: drift alarms for LiDAR SLAM without ground truth (PNE and CPV over a window of scans).
+
+The public facade. Core modules take numpy arrays and 4×4 poses, never ROS messages; node.py alone
+imports rclpy. Names are resolved lazily so ``import topometric_ros`` stays light.
+"""
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+#: public name -> module that defines it
+_EXPORTS = {
+    "Frame": "window",
+    "WindowResult": "pipeline",
+    "evaluate_window": "pipeline",
+    "Monitor": "monitor",
+    "load_config": "config",
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'topometric_ros' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+
+
+__all__ = list(_EXPORTS)

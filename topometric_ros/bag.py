@@ -1,0 +1,163 @@
+"""rosbag2 I/O through rosbags, no ROS install needed.
+
+Reading streams message by message (MCAP or sqlite3, detected from the bag); writing uses ROS 2 Jazzy
+message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose child-to-parent).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from . import geometry
+from .cloud import make_header, stamp_seconds
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STORAGES = ("mcap", "sqlite3")
+
+
+class BagError(RuntimeError):
+    """A bag that cannot be opened, or a topic that is missing from it."""
+
+
+@lru_cache(maxsize=1)
+def typestore() -> Any:
+    """The ROS 2 Jazzy typestore (message definitions as Jazzy ships them)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def msg_types() -> SimpleNamespace:
+    """Message classes of the Jazzy typestore, by short name (PointCloud2, Odometry, ...)."""
+    t = typestore().types
+    return SimpleNamespace(**{name.rsplit("/", 1)[-1]: cls for name, cls in t.items()})
+
+
+def topics(path: str | Path) -> dict[str, tuple[str, int]]:
+    """{topic: (msgtype, message count)} of a bag."""
+    from rosbags.highlevel import AnyReader
+
+    with _open(path, AnyReader) as reader:
+        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+
+
+def _open(path: str | Path, reader_cls: Any) -> Any:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    try:
+        return reader_cls([path], default_typestore=typestore())
+    except Exception as e:  # rosbags raises several types for unreadable bags
+        raise BagError(f"cannot open bag {path}: {e}") from e
+
+
+def read_messages(path: str | Path, topic_names: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+    """Yield (topic, receive time ns, deserialised message) in time order, one at a time.
+
+    ``topic_names`` limits the topics; a named topic missing from the bag raises BagError.
+    """
+    from rosbags.highlevel import AnyReader
+
+    with _open(path, AnyReader) as reader:
+        conns = reader.connections
+        if topic_names is not None:
+            wanted = set(topic_names)
+            missing = wanted - {c.topic for c in conns}
+            if missing:
+                have = ", ".join(sorted({c.topic for c in conns}))
+                raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {have})")
+            conns = [c for c in conns if c.topic in wanted]
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)
+
+
+def odometry_pose(msg: Any) -> tuple[float, np.ndarray]:
+    """nav_msgs/Odometry -> (header stamp s, 4×4 child-to-parent pose). Quaternion is normalised."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return stamp_seconds(msg.header), geometry.pose_from_quat([q.x, q.y, q.z, q.w], [p.x, p.y, p.z])
+
+
+def read_odometry(path: str | Path, topic: str = "/odom") -> tuple[np.ndarray, np.ndarray]:
+    """All odometry of a topic -> ((N,) stamps s, (N, 4, 4) poses), in bag order."""
+    stamps, poses = [], []
+    for _, _, msg in read_messages(path, [topic]):
+        s, t = odometry_pose(msg)
+        stamps.append(s)
+        poses.append(t)
+    return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
+
+
+def make_odometry(stamp: float, pose: np.ndarray, frame_id: str = "map", child_frame_id: str = "base_link") -> Any:
+    """nav_msgs/Odometry (Jazzy, rosbags) from a 4×4 child-to-parent pose; zero twist and covariance."""
+    m = msg_types()
+    q, t = geometry.pose_to_quat(pose)
+    cov = np.zeros(36)
+    pose_msg = m.PoseWithCovariance(
+        pose=m.Pose(position=m.Point(x=t[0], y=t[1], z=t[2]), orientation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+        covariance=cov)
+    twist = m.TwistWithCovariance(twist=m.Twist(linear=m.Vector3(x=0.0, y=0.0, z=0.0),
+                                                angular=m.Vector3(x=0.0, y=0.0, z=0.0)), covariance=cov.copy())
+    return m.Odometry(header=make_header(stamp, frame_id, m), child_frame_id=child_frame_id, pose=pose_msg, twist=twist)
+
+
+def make_tf(stamp: float, pose: np.ndarray, frame_id: str, child_frame_id: str) -> Any:
+    """tf2_msgs/TFMessage holding one transform (child-to-parent pose)."""
+    m = msg_types()
+    q, t = geometry.pose_to_quat(pose)
+    tf = m.TransformStamped(header=make_header(stamp, frame_id, m), child_frame_id=child_frame_id,
+                            transform=m.Transform(translation=m.Vector3(x=t[0], y=t[1], z=t[2]),
+                                                  rotation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
+    return m.TFMessage(transforms=[tf])
+
+
+def _latched_qos() -> Any:
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+class BagWriter:
+    """Streaming rosbag2 writer (Jazzy types): ``with BagWriter(path) as w: w.write('/odom', t, msg)``.
+
+    Topics are registered on first write from the message's type; ``latched`` topics (e.g. /tf_static)
+    are offered with transient-local QoS. The output directory must not exist yet.
+    """
+
+    def __init__(self, path: str | Path, storage: str = "mcap", latched: Iterable[str] = ("/tf_static",)):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        if storage not in STORAGES:
+            raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f"{self.path} exists already; choose a new output path or remove it")
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self._latched = set(latched)
+        self._conns: dict[str, Any] = {}
+
+    def __enter__(self) -> "BagWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer.open()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._writer.close()
+
+    def write(self, topic: str, stamp: float, msg: Any) -> None:
+        """Serialise and write one message with receive time ``stamp`` (s)."""
+        conn = self._conns.get(topic)
+        if conn is None:
+            qos = [_latched_qos()] if topic in self._latched else []
+            conn = self._writer.add_connection(topic, msg.__msgtype__, typestore=typestore(), offered_qos_profiles=qos)
+            self._conns[topic] = conn
+        raw = typestore().serialize_cdr(msg, msg.__msgtype__)
+        self._writer.write(conn, int(round(stamp * 1e9)), raw)

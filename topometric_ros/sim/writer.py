@@ -1,0 +1,141 @@
+"""Simulate a robot run and write it as a rosbag2 bag.
+
+Topics: /points (PointCloud2 in frame ``velodyne``: x, y, z, intensity float32, ring uint16, label uint8),
+/odom (estimated base_link pose, with drift), /odom_gt (ground truth), /tf_static (base_link -> velodyne).
+Odometry runs at ``odom_rate`` with stamps offset from the scans', so scans need interpolated poses.
+The bag folder also gets ``truth.json``: the settings, the drift episodes and per-class point counts.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .. import bag, classes, geometry
+from ..cloud import make_cloud, rosbags_types
+from .drift import DriftSpec, estimated_poses, plan_episodes
+from .lidar import Lidar, LidarSpec
+from .scenes import make_scene
+from .trajectory import random_trajectory
+
+START_TIME = 1_700_000_000.0  # s, bag time of the first scan
+SENSOR_FRAME, BASE_FRAME, MAP_FRAME = "velodyne", "base_link", "map"
+
+
+@dataclass
+class SimConfig:
+    """Everything that determines a simulated bag; the same config gives the same bag."""
+
+    scene: str = "garage"
+    layout_seed: int = 0  # floor plan
+    seed: int = 0  # trajectory, noise, drift
+    frames: int = 600
+    rate: float = 5.0  # scans per second
+    odom_rate: float = 20.0  # odometry messages per second
+    speed: float = 1.2  # m/s
+    sensor_height: float = 1.0  # m, base_link -> velodyne
+    drift: DriftSpec = field(default_factory=DriftSpec)
+    storage: str = "mcap"
+
+    @property
+    def extrinsic(self) -> np.ndarray:
+        """base_link -> velodyne, 4×4."""
+        return geometry.make_pose(np.eye(3), [0.0, 0.0, self.sensor_height])
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="scan", disable=not enabled, leave=False)
+
+
+def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
+    """Write the bag for ``cfg`` to directory ``out`` (must not exist). Returns the summary (also in truth.json)."""
+    t_start = time.perf_counter()
+    out = Path(out)
+    rng = np.random.default_rng(cfg.seed)
+    scene = make_scene(cfg.scene, cfg.layout_seed)
+    duration = cfg.frames / cfg.rate + 1.0
+    traj = random_trajectory(scene, duration, cfg.speed, START_TIME - 0.5, rng)
+    odom_t = START_TIME - 0.4 + 0.013 + np.arange(int((duration - 0.2) * cfg.odom_rate)) / cfg.odom_rate
+    gt_odom = traj.poses_at(odom_t)
+    episodes = plan_episodes(START_TIME, START_TIME + cfg.frames / cfg.rate, cfg.drift, rng)
+    est_odom = estimated_poses(odom_t, gt_odom, cfg.drift, episodes, rng)
+    scan_t = START_TIME + np.arange(cfg.frames) / cfg.rate
+    sensor_poses = traj.poses_at(scan_t) @ cfg.extrinsic
+    lidar = Lidar(scene, LidarSpec())
+    types = rosbags_types(bag.typestore())
+    counts = np.zeros(classes.NUM_CLASSES, np.int64)
+    n_points = []
+    k = 0  # next odometry message
+    with bag.BagWriter(out, storage=cfg.storage) as w, _progress(cfg.frames, f"simulate {cfg.scene}", progress) as bar:
+        w.write("/tf_static", scan_t[0] - 0.5, bag.make_tf(scan_t[0] - 0.5, cfg.extrinsic, BASE_FRAME, SENSOR_FRAME))
+        for i, (t, pose) in enumerate(zip(scan_t, sensor_poses)):
+            while k < len(odom_t) and odom_t[k] <= t + 0.05:  # odometry up to this scan's receive time
+                w.write("/odom", odom_t[k], bag.make_odometry(odom_t[k], est_odom[k], MAP_FRAME, BASE_FRAME))
+                w.write("/odom_gt", odom_t[k], bag.make_odometry(odom_t[k], gt_odom[k], MAP_FRAME, BASE_FRAME))
+                k += 1
+            scan = lidar.scan(pose, rng)
+            msg = make_cloud({"x": scan.points[:, 0], "y": scan.points[:, 1], "z": scan.points[:, 2],
+                              "intensity": scan.intensity, "ring": scan.ring, "label": scan.label},
+                             t, SENSOR_FRAME, types, align=4)
+            w.write("/points", t + 0.05, msg)  # received 50 ms after the sweep's stamp
+            counts += np.bincount(scan.label, minlength=classes.NUM_CLASSES)
+            n_points.append(len(scan.points))
+            bar.update()
+        for j in range(k, len(odom_t)):
+            w.write("/odom", odom_t[j], bag.make_odometry(odom_t[j], est_odom[j], MAP_FRAME, BASE_FRAME))
+            w.write("/odom_gt", odom_t[j], bag.make_odometry(odom_t[j], gt_odom[j], MAP_FRAME, BASE_FRAME))
+    summary = {
+        "bag": str(out), "config": {**asdict(cfg), "drift": asdict(cfg.drift)},
+        "scene_area_m2": round(scene.area, 1), "frames": cfg.frames, "duration_s": cfg.frames / cfg.rate,
+        "path_length_m": float(np.linalg.norm(np.diff(sensor_poses[:, :3, 3], axis=0), axis=1).sum()),
+        "mean_points_per_scan": float(np.mean(n_points)),
+        "class_points": {classes.NAMES[c]: int(n) for c, n in enumerate(counts)},
+        "episodes": [e.as_dict() for e in episodes],
+        "elapsed_s": round(time.perf_counter() - t_start, 2),
+    }
+    (out / "truth.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def load_truth(bag_path: str | Path) -> dict | None:
+    """The truth.json a simulated bag carries, or None for other bags."""
+    p = Path(bag_path) / "truth.json"
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def simulate_split(scenes: list[str], out: str | Path, cfg: SimConfig, n_train: int = 2, n_test: int = 1,
+                   progress: bool = True) -> list[dict]:
+    """Train/test bags per scene (the paper's Table 1): out/train/<scene>_<k> and out/test/<scene>_<k>.
+
+    Trajectories are disjoint: train uses seeds cfg.seed + 0.., test cfg.seed + 1000..; same floor plan.
+    """
+    out = Path(out)
+    summaries = []
+    for scene in scenes:
+        for split, n, base in (("train", n_train, 0), ("test", n_test, 1000)):
+            for k in range(n):
+                run = replace(cfg, scene=scene, seed=cfg.seed + base + k)
+                summaries.append({"split": split, **simulate(run, out / split / f"{scene}_{k}", progress)})
+    return summaries
+
+
+def format_summary(s: dict) -> str:
+    """Human-readable lines for one simulate() summary."""
+    total = sum(s["class_points"].values()) or 1
+    share = ", ".join(f"{k} {100 * v / total:.1f}%" for k, v in s["class_points"].items())
+    lines = [f"bag            {s['bag']}",
+             f"scene          {s['config']['scene']} ({s['scene_area_m2']:.0f} m²), {s['frames']} scans "
+             f"at {s['config']['rate']} Hz = {s['duration_s']:.1f} s, path {s['path_length_m']:.1f} m",
+             f"points/scan    {s['mean_points_per_scan']:.0f}",
+             f"classes        {share}",
+             f"drift          {s['config']['drift']['mode']} × {s['config']['drift']['scale']} "
+             f"({s['config']['drift']['kind']}), {len(s['episodes'])} episode(s)"]
+    lines += [f"  episode {i}: {e['start'] - START_TIME:7.1f} s .. {e['end'] - START_TIME:7.1f} s"
+              for i, e in enumerate(s["episodes"])]
+    lines.append(f"elapsed        {s['elapsed_s']:.1f} s")
+    return "\n".join(lines)
