@@ -1,0 +1,154 @@
+"""Configuration: the one place every tunable lives, with its default and unit.
+
+Sections are dataclasses; ``load_config`` reads a YAML file that is either a plain nested mapping or a
+ROS 2 parameter file (``<node>: ros__parameters: {...}``), so config/topometric.yaml serves the node and
+the replay alike. Unknown keys are errors (a typo must not silently fall back to a default). The node
+declares one ROS parameter per leaf, named ``section.field``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+
+@dataclass
+class WindowConfig:
+    """Sliding window of scans and the pose lookup (window.py, monitor.py)."""
+
+    size: int = 5  # scans per window (paper: 5, 10, 15)
+    step: int = 0  # scans between window starts; 0 = size (the paper's choice)
+    pose_wait_s: float = 0.1  # a scan waits until odometry newer than its stamp + this arrives
+    max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
+    queue_size: int = 8  # scans waiting for the worker; when full the oldest is dropped
+    voxel_size: float = 0.0  # m, voxel downsample per scan before segmentation (0 = off)
+
+
+@dataclass
+class SegmentationConfig:
+    """Which labels reach plane detection (segmentation/)."""
+
+    mode: str = "network"  # network | labels (the cloud's label field) | none (every point static)
+    weights: str = ""  # path to weights; "" = the shipped ones
+    device: str = "cpu"  # cpu | cuda
+    threads: int = 1  # torch CPU threads for inference
+
+
+@dataclass
+class PlaneConfig:
+    """Per-scan plane detection per static class (planes.py)."""
+
+    detector: str = "ring"  # ring (fast, uses the scan structure) | open3d (detect_planar_patches)
+    min_points: int = 50  # smallest plane kept
+    max_sample_points: int = 256  # inlier points kept per plane for display (stats use all inliers)
+
+
+@dataclass
+class MetricsConfig:
+    """PNE, CPV and the MME/MPV/MOM baselines (metrics/)."""
+
+    baselines: bool = False  # also compute MME, MPV, MOM (slower)
+    radius: float = 1.0  # m, neighbourhood radius of MME/MPV/MOM
+    min_neighbours: int = 5  # a point counts when it has more than this many neighbours
+    exact_baselines: bool = False  # exact MME/MPV (every point) instead of the fast approximation
+
+
+@dataclass
+class HealthConfig:
+    """Drift alarms (health.py)."""
+
+    stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
+
+
+@dataclass
+class Config:
+    window: WindowConfig = field(default_factory=WindowConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    planes: PlaneConfig = field(default_factory=PlaneConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
+
+
+def _unwrap_ros(doc: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters."""
+    if len(doc) == 1:
+        (inner,) = doc.values()
+        if isinstance(inner, Mapping) and "ros__parameters" in inner:
+            return inner["ros__parameters"]
+    return doc
+
+
+def _nest(flat: Mapping[str, Any]) -> dict:
+    """{'window.size': 5} -> {'window': {'size': 5}}; nested mappings pass through."""
+    out: dict = {}
+    for key, value in flat.items():
+        head, dot, rest = str(key).partition(".")
+        if dot:
+            out.setdefault(head, {})[rest] = value
+        elif isinstance(value, Mapping):
+            out.setdefault(head, {}).update(value)
+        else:
+            out[head] = value
+    return out
+
+
+def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
+    """A copy of dataclass ``obj`` with ``values`` (nested or dotted keys) applied; ValueError on unknown keys
+    or values of the wrong type."""
+    known = {f.name: f for f in fields(obj)}
+    changes = {}
+    for key, value in _nest(values).items():
+        name = f"{where}{key}"
+        if key not in known:
+            raise ValueError(f"unknown config key {name!r}; known: {', '.join(where + k for k in known)}")
+        current = getattr(obj, key)
+        if is_dataclass(current):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"config key {name!r} is a section; give a mapping")
+            changes[key] = apply(current, value, f"{name}.")
+        else:
+            changes[key] = _coerce(name, current, value)
+    return replace(obj, **changes)
+
+
+def _coerce(name: str, current: Any, value: Any) -> Any:
+    kind = type(current)
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+    elif kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    elif isinstance(value, kind) and not isinstance(value, bool):
+        return value
+    raise ValueError(f"config key {name!r} must be {kind.__name__}, got {value!r}")
+
+
+def flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
+    """{'window.size': 5, ...}: every leaf of a config, named as the node declares it."""
+    out = {}
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if is_dataclass(value):
+            out.update(flatten(value, f"{prefix}{f.name}."))
+        else:
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Defaults, then the YAML file at ``path`` (plain or ROS 2 parameter file), then ``overrides``
+    (nested or dotted keys, e.g. {'window.size': 10})."""
+    import yaml
+
+    cfg = Config()
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"config file not found: {p}")
+        doc = yaml.safe_load(p.read_text()) or {}
+        if not isinstance(doc, Mapping):
+            raise ValueError(f"{p}: expected a mapping at the top level")
+        cfg = apply(cfg, _unwrap_ros(doc))
+    if overrides:
+        cfg = apply(cfg, overrides)
+    return cfg
