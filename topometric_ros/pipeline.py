@@ -226,11 +226,11 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
 def _baselines(result: WindowResult, scans: Sequence[ProcessedScan], poses: np.ndarray, config: Config,
                timer: _Timer) -> None:
     """MME, MPV, MOM (map-metrics definitions) on the scans' sensor-frame points and window-relative poses."""
-    from .metrics import mme, mom, mpv
-
     clouds = [s.points for s in scans]
     if any(c is None for c in clouds):
         raise ValueError("baselines need the scans' points: process them with config.metrics.baselines on")
+    from .metrics import mme, mom, mpv
+
     m = config.metrics
     with timer("mme"):
         result.mme = float(mme.mme(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))
