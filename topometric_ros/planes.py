@@ -87,7 +87,7 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring, config, frame: i
             if len(pts) < config.min_points:
                 break
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            _, inliers = cloud.segment_plane(0.02, 3, 200)
+            _, inliers = cloud.segment_plane(0.02, 3, 200, seed=0)
             if len(inliers) < config.min_points:
                 break
             out.append(fit_plane(pts[inliers], cls, frame, config.max_sample_points))
