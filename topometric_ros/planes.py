@@ -71,25 +71,3 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
         m = keep & (instance == inst)
         out.append(fit_plane(points[m], int(np.bincount(labels[m]).argmax()), frame))
     return out
-
-
-# --- TEMPORARY (branch pnecpv only): a stand-in so the pipeline runs before the planes helper's detector
-# lands. The merge must DROP this block (the commit that adds it says so) and keep planes.detect_planes
-# from the planes branch, which has the same signature.
-def detect_planes(points: np.ndarray, labels: np.ndarray, ring, config, frame: int = -1) -> list[Plane]:
-    """TEMPORARY stand-in: per static class, repeated Open3D RANSAC (2 cm) until < min_points remain."""
-    import open3d as o3d
-
-    out = []
-    for cls in C.STATIC:
-        pts = np.asarray(points[labels == cls], np.float64)
-        for _ in range(12):
-            if len(pts) < config.min_points:
-                break
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            _, inliers = cloud.segment_plane(0.02, 3, 200, seed=0)
-            if len(inliers) < config.min_points:
-                break
-            out.append(fit_plane(pts[inliers], cls, frame, config.max_sample_points))
-            pts = np.delete(pts, inliers, axis=0)
-    return out
