@@ -71,3 +71,379 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
         m = keep & (instance == inst)
         out.append(fit_plane(points[m], int(np.bincount(labels[m]).argmax()), frame))
     return out
+
+
+# --------------------------------------------------------------------------------------------------------
+# Detection. Both detectors produce "parts" (a class, summed inlier statistics and anchor points), merge the
+# coplanar parts of one surface, assign every static point to the nearest merged plane within
+# inlier_distance, and refit each plane on all its inliers with fit_plane.
+# --------------------------------------------------------------------------------------------------------
+
+_NCLS = C.NUM_CLASSES
+
+
+def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | None = None, config=None,
+                  frame: int = -1, return_inliers: bool = False):
+    """Planes of one scan, per static class (classes.STATIC), in the sensor frame.
+
+    points: (N, 3) sensor frame, metres. labels: (N,) uint8 class ids. ring: (N,) beam index (0 = lowest) or
+    None (then the beam is found from the elevation, VLP-32C table). config: PlaneConfig (config.planes).
+    Every plane: unit normal toward the sensor (offset > 0), stats from all its inliers, class, ``frame``.
+    Planes with fewer than config.min_points inliers are dropped.
+
+    Returns the list of planes, or with ``return_inliers`` (planes, (N,) int32 index of each point's plane,
+    −1 for none).
+    """
+    from .config import PlaneConfig
+
+    cfg = config if config is not None else PlaneConfig()
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    lab = np.asarray(labels).reshape(-1)
+    if len(lab) != len(pts):
+        raise ValueError(f"{len(pts)} points but {len(lab)} labels")
+    if ring is not None and len(ring) != len(pts):
+        raise ValueError(f"{len(pts)} points but {len(ring)} ring ids")
+    if cfg.detector == "ring":
+        assign = _assign_ring(pts, lab, ring, cfg)
+    elif cfg.detector == "open3d":
+        assign = _assign_open3d(pts, lab, cfg)
+    else:
+        raise ValueError(f"unknown plane detector {cfg.detector!r}; choose ring or open3d")
+    planes, assign = _refit(pts, lab, assign, cfg, frame)
+    return (planes, assign) if return_inliers else planes
+
+
+# ---- shared pieces -------------------------------------------------------------------------------------
+
+def _moments(pts: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(count (G,), sum (G, 3), Σ x xᵀ (G, 3, 3)) of float64 points per group id (0..G−1)."""
+    x = pts.astype(np.float64)
+    count = np.bincount(group, minlength=n_groups).astype(np.float64)
+    s = np.stack([np.bincount(group, x[:, i], n_groups) for i in range(3)], 1)
+    outer = np.empty((n_groups, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            outer[:, i, j] = outer[:, j, i] = np.bincount(group, x[:, i] * x[:, j], n_groups)
+    return count, s, outer
+
+
+def _planes_of(count, s, outer):
+    """Least-squares planes from summed moments: (normal (G, 3) toward the origin, offset (G,), mean (G, 3),
+    eigenvalues (G, 3) ascending of the scatter matrix)."""
+    n = np.maximum(count, 1.0)
+    mean = s / n[:, None]
+    scatter = outer - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
+    lam, vec = np.linalg.eigh(scatter)
+    normal = vec[:, :, 0]
+    offset = -np.einsum("ij,ij->i", normal, mean)
+    flip = offset < 0
+    normal[flip] *= -1
+    offset[flip] *= -1
+    return normal, offset, mean, lam
+
+
+def _merge_groups(cls, normal, offset, mean, adjacent: np.ndarray, cfg) -> np.ndarray:
+    """Merged group id for each part: parts of one class whose planes agree (normals within
+    normal_angle_deg, each centroid within merge_distance of the other plane) and that are ``adjacent``
+    ((P, P) bool) are joined, transitively."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    p = len(cls)
+    if p == 0:
+        return np.zeros(0, np.int64)
+    i, j = np.nonzero(np.triu(adjacent, 1))
+    ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
+    graph = coo_matrix((np.ones(int(ok.sum())), (i[ok], j[ok])), shape=(p, p))
+    return connected_components(graph, directed=False)[1]
+
+
+def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
+    """For index pairs (i, j): same class, normals within angle_deg, each centroid within distance of the
+    other's plane (normals oriented toward the sensor, so no sign ambiguity)."""
+    cos = np.einsum("ij,ij->i", normal[i], normal[j])
+    d_ij = np.abs(np.einsum("ij,ij->i", normal[i], mean[j]) + offset[i])
+    d_ji = np.abs(np.einsum("ij,ij->i", normal[j], mean[i]) + offset[j])
+    return (cls[i] == cls[j]) & (cos >= np.cos(np.radians(angle_deg))) & (d_ij <= distance) & (d_ji <= distance)
+
+
+def _refit(pts, lab, assign, cfg, frame) -> tuple[list[Plane], np.ndarray]:
+    """Fit each assigned group with fit_plane on all its inliers; drop groups below min_points; renumber."""
+    idx = np.flatnonzero(assign >= 0)
+    out = np.full(len(pts), -1, np.int32)
+    if len(idx) == 0:
+        return [], out
+    order = idx[np.argsort(assign[idx], kind="stable")]
+    groups, starts, counts = np.unique(assign[order], return_index=True, return_counts=True)
+    planes = []
+    rng = np.random.default_rng(0)
+    for start, count in zip(starts, counts):
+        if count < max(cfg.min_points, 3):
+            continue
+        members = order[start:start + count]
+        cls = int(lab[members[0]])
+        planes.append(fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng))
+        out[members] = len(planes) - 1
+    return planes, out
+
+
+# ---- ring detector -------------------------------------------------------------------------------------
+
+def scan_rows_columns(points: np.ndarray, ring: np.ndarray | None, azimuth_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's (row, column) in the organised scan: row = ring (or the nearest VLP-32C beam by
+    elevation when ring is None), column = azimuth cell of ``azimuth_bins`` per revolution."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    if ring is None:
+        from .sim.lidar import RING_ELEVATION_DEG
+
+        elev = np.degrees(np.arctan2(z, np.hypot(x, y)))
+        mids = (RING_ELEVATION_DEG[1:] + RING_ELEVATION_DEG[:-1]) / 2
+        row = np.searchsorted(mids, elev).astype(np.int64)
+    else:
+        row = np.asarray(ring).astype(np.int64)
+    az = np.arctan2(y, x)
+    col = np.floor(az * (azimuth_bins / (2 * np.pi))).astype(np.int64) % azimuth_bins
+    return row, col
+
+
+def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
+    """Plane group per point (−1 none) from planar tiles of the ring × azimuth grid, grown into segments."""
+    assign = np.full(len(pts), -1, np.int64)
+    static = np.flatnonzero(np.isin(lab, C.STATIC))
+    if len(static) < 3:
+        return assign
+    p = pts[static]
+    cls_pt = lab[static].astype(np.int64)
+    row, col = scan_rows_columns(p, None if ring is None else ring[static], cfg.azimuth_bins)
+    tw, th = cfg.tile_columns, cfg.tile_rings
+    tcols = -(-cfg.azimuth_bins // tw)
+    trows = int(row.max()) // th + 1
+    tr, tc = row // th, col // tw
+    cell = (cls_pt * trows + tr) * tcols + tc  # (class, tile row, tile col) flattened
+    n_cells = _NCLS * trows * tcols
+    present = np.bincount(cell, minlength=n_cells) > 0
+    compact = np.cumsum(present) - 1  # cell -> tile index
+    tile = compact[cell]
+    n_tiles = int(present.sum())
+    count, s, outer = _moments(p, tile, n_tiles)
+    normal, offset, mean, lam = _planes_of(count, s, outer)
+    n = np.maximum(count, 1)
+    good = ((count >= cfg.tile_min_points) & (lam[:, 0] <= n * cfg.tile_max_rms ** 2)
+            & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0]) & (lam[:, 1] >= n * 1e-6))
+    # grid of good tiles per (class, row, col); grow segments over 8-neighbours that agree
+    grid = np.full(n_cells, -1, np.int64)
+    grid[np.flatnonzero(present)[good]] = np.flatnonzero(good)
+    grid = grid.reshape(_NCLS, trows, tcols)
+    pairs = _neighbour_pairs(grid)
+    tcls = np.empty(n_tiles, np.int64)
+    tcls[tile] = cls_pt
+    ok = _coplanar(tcls, normal, offset, mean, pairs[0], pairs[1], cfg.tile_angle_deg, cfg.merge_distance)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    gi = np.flatnonzero(good)
+    local = np.full(n_tiles, -1, np.int64)
+    local[gi] = np.arange(len(gi))
+    graph = coo_matrix((np.ones(int(ok.sum())), (local[pairs[0][ok]], local[pairs[1][ok]])), shape=(len(gi),) * 2)
+    n_seg, seg_local = connected_components(graph, directed=False)
+    seg_of_tile = np.full(n_tiles, -1, np.int64)
+    seg_of_tile[gi] = seg_local
+    # segment planes from summed tile moments; merge coplanar segments that touch or nearly touch
+    scount = np.bincount(seg_local, count[gi], n_seg)
+    ss = np.stack([np.bincount(seg_local, s[gi, k], n_seg) for k in range(3)], 1)
+    souter = np.stack([np.bincount(seg_local, outer[gi, a, b], n_seg) for a in range(3) for b in range(3)],
+                      1).reshape(n_seg, 3, 3)
+    snormal, soffset, smean, _ = _planes_of(scount, ss, souter)
+    scls = np.zeros(n_seg, np.int64)
+    scls[seg_local] = tcls[gi]
+    adjacent = _segment_adjacency(seg_of_tile, grid, mean, scls, cfg.merge_gap)
+    merged = _merge_groups(scls, snormal, soffset, smean, adjacent, cfg)
+    n_m = int(merged.max()) + 1 if n_seg else 0
+    mcount = np.bincount(merged, scount, n_m)
+    ms = np.stack([np.bincount(merged, ss[:, k], n_m) for k in range(3)], 1)
+    mouter = np.stack([np.bincount(merged, souter[:, a, b], n_m) for a in range(3) for b in range(3)],
+                      1).reshape(n_m, 3, 3)
+    mnormal, moffset, _, _ = _planes_of(mcount, ms, mouter)
+    # each static point: nearest merged plane among those of its own and the 8 neighbouring tiles
+    plane_grid = np.where(grid >= 0, merged[seg_of_tile[np.maximum(grid, 0)]], -1)
+    best = _nearest_candidate(p, cls_pt, tr, tc, plane_grid, mnormal, moffset, cfg.inlier_distance)
+    assign[static] = best
+    return assign
+
+
+def _shifted(grid: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """grid[..., r + dr, c + dc] (columns wrap around, rows outside the grid give −1)."""
+    out = np.roll(grid, -dc, axis=-1)
+    if dr > 0:
+        out = np.concatenate([out[..., dr:, :], np.full_like(out[..., :dr, :], -1)], axis=-2)
+    elif dr < 0:
+        out = np.concatenate([np.full_like(out[..., dr:, :], -1), out[..., :dr, :]], axis=-2)
+    return out
+
+
+def _neighbour_pairs(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) ids of 8-neighbouring occupied cells of a (..., rows, cols) id grid (−1 empty), each pair once."""
+    a_all, b_all = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        b = _shifted(grid, dr, dc)
+        m = (grid >= 0) & (b >= 0)
+        a_all.append(grid[m])
+        b_all.append(b[m])
+    return np.concatenate(a_all), np.concatenate(b_all)
+
+
+def _segment_adjacency(seg_of_tile, grid, tile_mean, scls, gap) -> np.ndarray:
+    """(S, S) bool: segments with 8-neighbouring tiles, or with tile centroids within ``gap`` metres."""
+    n_seg = len(scls)
+    adj = np.zeros((n_seg, n_seg), bool)
+    if n_seg == 0:
+        return adj
+    sgrid = np.where(grid >= 0, seg_of_tile[np.maximum(grid, 0)], -1)
+    a, b = _neighbour_pairs(sgrid)
+    adj[a, b] = adj[b, a] = True
+    good = np.flatnonzero(seg_of_tile >= 0)
+    seg = seg_of_tile[good]
+    if gap > 0 and len(good) < 6000:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(tile_mean[good])
+        pairs = tree.query_pairs(gap, output_type="ndarray")
+        if len(pairs):
+            adj[seg[pairs[:, 0]], seg[pairs[:, 1]]] = True
+            adj[seg[pairs[:, 1]], seg[pairs[:, 0]]] = True
+    return adj
+
+
+def _nearest_candidate(p, cls_pt, tr, tc, plane_grid, normal, offset, max_dist) -> np.ndarray:
+    """Per point: the plane (of its class) nearest to it among the planes of its tile and the 8 tiles around,
+    if within max_dist, else −1."""
+    trows, tcols = plane_grid.shape[1:]
+    best = np.full(len(p), -1, np.int64)
+    best_d = np.full(len(p), np.inf, np.float32)
+    flat = plane_grid.reshape(-1)
+    if len(normal) == 0:
+        return best
+    nrm = normal.astype(np.float32)
+    off = offset.astype(np.float32)
+    for dr in (-1, 0, 1):
+        r = tr + dr
+        inside = (r >= 0) & (r < trows)
+        rr = np.clip(r, 0, trows - 1)
+        for dc in (-1, 0, 1):
+            cand = flat[(cls_pt * trows + rr) * tcols + (tc + dc) % tcols]
+            cand = np.where(inside, cand, -1)
+            has = cand >= 0
+            ci = np.maximum(cand, 0)
+            d = np.abs(np.einsum("ij,ij->i", p, nrm[ci]) + off[ci])
+            take = has & (d < best_d) & (d <= max_dist)
+            best[take] = cand[take]
+            best_d[take] = d[take]
+    return best
+
+
+# ---- open3d detector -----------------------------------------------------------------------------------
+
+def _assign_open3d(pts, lab, cfg) -> np.ndarray:
+    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class, coplanar patches
+    of one surface merged; a point goes to the nearest merged plane whose patch boxes contain it."""
+    import open3d as o3d
+
+    assign = np.full(len(pts), -1, np.int64)
+    parts = []  # (class, member indices)
+    for cls in C.STATIC:
+        idx = np.flatnonzero(lab == cls)
+        if len(idx) < max(cfg.min_points, cfg.o3d_knn, 3):
+            continue
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[idx].astype(np.float64)))
+        search = o3d.geometry.KDTreeSearchParamKNN(cfg.o3d_knn)
+        pcd.estimate_normals(search)
+        patches = pcd.detect_planar_patches(normal_variance_threshold_deg=cfg.o3d_normal_variance_deg,
+                                            coplanarity_deg=cfg.o3d_coplanarity_deg,
+                                            outlier_ratio=cfg.o3d_outlier_ratio,
+                                            search_param=search)
+        for box in patches:
+            box.extent = np.maximum(np.asarray(box.extent), [0, 0, 2 * cfg.inlier_distance])
+            inside = np.asarray(box.get_point_indices_within_bounding_box(pcd.points), np.int64)
+            if len(inside) >= 3:
+                parts.append((cls, idx[inside]))
+    if not parts:
+        return assign
+    member = np.concatenate([m for _, m in parts])
+    part_id = np.repeat(np.arange(len(parts)), [len(m) for _, m in parts])
+    count, s, outer = _moments(pts[member], part_id, len(parts))
+    normal, offset, mean, _ = _planes_of(count, s, outer)
+    cls = np.array([c for c, _ in parts], np.int64)
+    adjacent = _point_set_adjacency([pts[m] for _, m in parts], cfg.merge_gap)
+    merged = _merge_groups(cls, normal, offset, mean, adjacent, cfg)
+    n_m = int(merged.max()) + 1
+    mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
+                                        np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
+                                        np.stack([np.bincount(merged, outer[:, a, b], n_m) for a in range(3)
+                                                  for b in range(3)], 1).reshape(n_m, 3, 3))
+    cand = merged[part_id]
+    d = np.abs(np.einsum("ij,ij->i", pts[member].astype(np.float64), mnormal[cand]) + moffset[cand])
+    keep = d <= cfg.inlier_distance
+    member, cand, d = member[keep], cand[keep], d[keep]
+    order = np.lexsort((d, member))  # per point, nearest first
+    first = np.ones(len(order), bool)
+    first[1:] = member[order][1:] != member[order][:-1]
+    assign[member[order][first]] = cand[order][first]
+    return assign
+
+
+def _point_set_adjacency(sets: list[np.ndarray], gap: float, max_anchor: int = 400) -> np.ndarray:
+    """(P, P) bool: point sets that come within ``gap`` metres of each other (on ≤ max_anchor anchors each)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    anchors, owner = [], []
+    for k, q in enumerate(sets):
+        a = q if len(q) <= max_anchor else q[rng.choice(len(q), max_anchor, replace=False)]
+        anchors.append(a)
+        owner.append(np.full(len(a), k))
+    owner = np.concatenate(owner)
+    pairs = cKDTree(np.concatenate(anchors)).query_pairs(max(gap, 1e-6), output_type="ndarray")
+    adj = np.zeros((len(sets), len(sets)), bool)
+    if len(pairs):
+        adj[owner[pairs[:, 0]], owner[pairs[:, 1]]] = True
+        adj[owner[pairs[:, 1]], owner[pairs[:, 0]]] = True
+    return adj
+
+
+# ---- quality against ground-truth plane instances ------------------------------------------------------
+
+def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 200,
+                  static: tuple = C.STATIC) -> dict:
+    """Detected planes of one scan against the simulator's plane-instance ids.
+
+    assign: (N,) plane index per point (−1 none), as ``detect_planes(..., return_inliers=True)`` gives.
+    labels, instance: (N,) ground-truth class and plane-instance id per point.
+
+    Definitions. Ground-truth planes: instances with ≥ ``min_points`` points of a static class. A detected
+    plane's majority instance is the instance most of its inliers come from; its purity is that fraction.
+    A ground-truth plane is recalled when some detected plane has it as majority instance AND holds ≥ 50 %
+    of its points. Returns {'n_truth', 'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one
+    per detected plane), 'missed' (instance ids), 'n_planes'}.
+    """
+    assign = np.asarray(assign)
+    instance = np.asarray(instance).astype(np.int64)
+    keep = np.isin(labels, static)
+    ids, sizes = np.unique(instance[keep], return_counts=True)
+    truth = ids[sizes >= min_points]
+    size_of = dict(zip(ids.tolist(), sizes.tolist()))
+    det = assign >= 0
+    pairs, overlap = np.unique(np.stack([assign[det].astype(np.int64), instance[det]], 1), axis=0,
+                               return_counts=True)
+    recalled, purity = set(), []
+    if len(pairs):
+        planes, starts = np.unique(pairs[:, 0], return_index=True)
+        for start, stop in zip(starts, list(starts[1:]) + [len(pairs)]):
+            k = start + int(np.argmax(overlap[start:stop]))
+            purity.append(float(overlap[k] / overlap[start:stop].sum()))
+            inst = int(pairs[k, 1])
+            if overlap[k] >= 0.5 * size_of.get(inst, np.inf):
+                recalled.add(inst)
+    hit = [int(i) for i in truth if int(i) in recalled]
+    return {"n_truth": int(len(truth)), "n_recalled": len(hit),
+            "recall": len(hit) / len(truth) if len(truth) else float("nan"), "purity": purity,
+            "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
