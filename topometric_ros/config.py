@@ -45,10 +45,12 @@ class PlaneConfig:
     normal_angle_deg: float = 10.0  # deg, largest angle between normals of parts of one plane
     merge_distance: float = 0.06  # m, largest offset between parts of one plane (each centroid to the other plane)
     merge_gap: float = 0.3  # m, coplanar wall/pillar parts farther apart than this stay separate planes
+    merge_floor_ceiling: bool = True  # coplanar floor (ceiling) parts are one plane whatever the gap
     # ring detector: tiles of the ring × azimuth grid
     azimuth_bins: int = 1800  # azimuth cells per revolution (VLP-32C at 10 Hz: 0.2°)
     tile_rings: int = 4  # rings per tile
     tile_columns: int = 8  # azimuth cells per tile
+    tile_levels: int = 4  # quadtree levels: tiles of 1×1 up to 2^(levels-1) × 2^(levels-1) base tiles
     tile_min_points: int = 8  # fewer points of a class in a tile: the tile gives no plane seed
     tile_max_rms: float = 0.02  # m, RMS point-to-plane distance of a planar tile
     tile_min_flatness: float = 4.0  # a tile's smaller in-plane spread over its RMS off-plane (lines are no seeds)

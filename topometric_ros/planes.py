@@ -206,69 +206,120 @@ def scan_rows_columns(points: np.ndarray, ring: np.ndarray | None, azimuth_bins:
     return row, col
 
 
+_STATIC_INDEX = np.full(256, -1, np.int64)
+_STATIC_INDEX[list(C.STATIC)] = np.arange(len(C.STATIC))
+
+
 def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
-    """Plane group per point (−1 none) from planar tiles of the ring × azimuth grid, grown into segments."""
+    """Plane group per point (−1 none) on the organised scan.
+
+    Static points go into tiles of the ring × azimuth grid per class (tile_rings × tile_columns cells, and
+    coarser levels of 2×2 tiles). A quadtree keeps the coarsest planar tile over each cell (large tiles give
+    good normals at short range and on sparse rings; small tiles separate surfaces). Neighbouring planar tiles
+    that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
+    plane of its own or a neighbouring tile within inlier_distance."""
     assign = np.full(len(pts), -1, np.int64)
-    static = np.flatnonzero(np.isin(lab, C.STATIC))
+    static = np.flatnonzero(_STATIC_INDEX[lab] >= 0)
     if len(static) < 3:
         return assign
     p = pts[static]
-    cls_pt = lab[static].astype(np.int64)
+    ci = _STATIC_INDEX[lab[static]]
     row, col = scan_rows_columns(p, None if ring is None else ring[static], cfg.azimuth_bins)
-    tw, th = cfg.tile_columns, cfg.tile_rings
-    tcols = -(-cfg.azimuth_bins // tw)
-    trows = int(row.max()) // th + 1
-    tr, tc = row // th, col // tw
-    cell = (cls_pt * trows + tr) * tcols + tc  # (class, tile row, tile col) flattened
-    n_cells = _NCLS * trows * tcols
-    present = np.bincount(cell, minlength=n_cells) > 0
-    compact = np.cumsum(present) - 1  # cell -> tile index
-    tile = compact[cell]
-    n_tiles = int(present.sum())
-    count, s, outer = _moments(p, tile, n_tiles)
-    normal, offset, mean, lam = _planes_of(count, s, outer)
-    n = np.maximum(count, 1)
-    good = ((count >= cfg.tile_min_points) & (lam[:, 0] <= n * cfg.tile_max_rms ** 2)
-            & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0]) & (lam[:, 1] >= n * 1e-6))
-    # grid of good tiles per (class, row, col); grow segments over 8-neighbours that agree
-    grid = np.full(n_cells, -1, np.int64)
-    grid[np.flatnonzero(present)[good]] = np.flatnonzero(good)
-    grid = grid.reshape(_NCLS, trows, tcols)
-    pairs = _neighbour_pairs(grid)
-    tcls = np.empty(n_tiles, np.int64)
-    tcls[tile] = cls_pt
-    ok = _coplanar(tcls, normal, offset, mean, pairs[0], pairs[1], cfg.tile_angle_deg, cfg.merge_distance)
+    tiles = _quadtree_tiles(p, ci, row // cfg.tile_rings, col // cfg.tile_columns,
+                            -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
+    if tiles is None:
+        return assign
+    count, s, outer, normal, offset, mean, tcls, grid, cell = tiles
+    # grow segments over neighbouring tiles that agree
+    a, b = _neighbour_pairs(grid)
+    ok = _coplanar(tcls, normal, offset, mean, a, b, cfg.tile_angle_deg, cfg.merge_distance)
+    n_seg, seg = _components(len(count), a[ok], b[ok])
+    scount, ss, souter = _sum_moments(seg, n_seg, count, s, outer)
+    snormal, soffset, smean, _ = _planes_of(scount, ss, souter)
+    scls = np.zeros(n_seg, np.int64)
+    scls[seg] = tcls
+    # merge coplanar segments that touch (or nearly touch; floors and ceilings whatever the gap)
+    adjacent = np.zeros((n_seg, n_seg), bool)
+    adjacent[seg[a], seg[b]] = adjacent[seg[b], seg[a]] = True
+    _near_pairs(adjacent, seg, mean, cfg.merge_gap)
+    if cfg.merge_floor_ceiling:
+        horiz = np.isin(scls, [_STATIC_INDEX[C.FLOOR], _STATIC_INDEX[C.CEILING]])
+        adjacent |= horiz[:, None] & horiz[None, :]
+    merged = _merge_groups(scls, snormal, soffset, smean, adjacent, cfg)
+    n_m = int(merged.max()) + 1
+    mnormal, moffset, _, _ = _planes_of(*_sum_moments(merged, n_m, scount, ss, souter))
+    plane_of_tile = merged[seg]
+    # each point: its own tile's plane if near enough, else the nearest plane of the 8 neighbouring tiles
+    plane_grid = np.where(grid >= 0, plane_of_tile[np.maximum(grid, 0)], -1)
+    best = _nearest_candidate(p, cell, plane_grid, mnormal, moffset, cfg.inlier_distance)
+    assign[static] = best
+    return assign
+
+
+def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
+    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, class
+    index) and the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar tile), plus each
+    point's flat cell index in that grid; None when no tile is planar."""
+    levels = max(int(cfg.tile_levels), 1)
+    f = 2 ** (levels - 1)
+    trows = -(-(int(tr.max()) + 1) // f) * f
+    pcols = -(-tcols // f) * f
+    ncls = len(C.STATIC)
+    cell = (ci * trows + tr) * pcols + tc
+    shape = (ncls, trows, pcols)
+    count, s, outer = _moments(p, cell, ncls * trows * pcols)
+    count, s, outer = count.reshape(shape), s.reshape(shape + (3,)), outer.reshape(shape + (3, 3))
+    covered = np.zeros((ncls, trows // f, pcols // f), bool)
+    chosen = []  # per level: (flat indices at that level, count, s, outer, normal, offset, mean)
+    for k in range(levels - 1, -1, -1):
+        m = 2 ** k
+        lshape = (ncls, trows // m, m, pcols // m, m)
+        lc = count.reshape(lshape).sum((2, 4))
+        ls = s.reshape(lshape + (3,)).sum((2, 4))
+        lo = outer.reshape(lshape + (3, 3)).sum((2, 4))
+        cand = np.flatnonzero((lc >= cfg.tile_min_points).reshape(-1) & ~covered.reshape(-1))
+        cc, cs, co = lc.reshape(-1)[cand], ls.reshape(-1, 3)[cand], lo.reshape(-1, 3, 3)[cand]
+        nrm, off, mean, lam = _planes_of(cc, cs, co)
+        good = ((lam[:, 0] <= cc * cfg.tile_max_rms ** 2) & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0])
+                & (lam[:, 1] >= cc * 1e-6))
+        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good]))
+        used = np.zeros(covered.size, bool)
+        used[cand[good]] = True
+        covered = covered | used.reshape(covered.shape)
+        if k:
+            covered = covered.repeat(2, axis=1).repeat(2, axis=2)
+    n_tiles = sum(len(c[1]) for c in chosen)
+    if n_tiles == 0:
+        return None
+    grid = np.full(shape, -1, np.int64)
+    start = 0
+    for k, idx, *_ in chosen:
+        m = 2 ** k
+        ids = np.full(ncls * (trows // m) * (pcols // m), -1, np.int64)
+        ids[idx] = np.arange(start, start + len(idx))
+        ids = ids.reshape(ncls, trows // m, pcols // m).repeat(m, axis=1).repeat(m, axis=2)
+        grid = np.maximum(grid, ids)
+        start += len(idx)
+    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 8)]
+    tcls = np.concatenate([idx // ((trows // 2 ** k) * (pcols // 2 ** k)) for k, idx, *_ in chosen])
+    grid = grid[:, :, :tcols]  # drop padding so that azimuth wraps around
+    cell = (ci * trows + tr) * tcols + tc
+    return (*cat, tcls, grid, cell)
+
+
+def _sum_moments(group, n, count, s, outer):
+    """Moments summed per group id."""
+    return (np.bincount(group, count, n), np.stack([np.bincount(group, s[:, k], n) for k in range(3)], 1),
+            np.stack([np.bincount(group, outer[:, i, j], n) for i in range(3) for j in range(3)],
+                     1).reshape(n, 3, 3))
+
+
+def _components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of n nodes joined by edges (a, b)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    gi = np.flatnonzero(good)
-    local = np.full(n_tiles, -1, np.int64)
-    local[gi] = np.arange(len(gi))
-    graph = coo_matrix((np.ones(int(ok.sum())), (local[pairs[0][ok]], local[pairs[1][ok]])), shape=(len(gi),) * 2)
-    n_seg, seg_local = connected_components(graph, directed=False)
-    seg_of_tile = np.full(n_tiles, -1, np.int64)
-    seg_of_tile[gi] = seg_local
-    # segment planes from summed tile moments; merge coplanar segments that touch or nearly touch
-    scount = np.bincount(seg_local, count[gi], n_seg)
-    ss = np.stack([np.bincount(seg_local, s[gi, k], n_seg) for k in range(3)], 1)
-    souter = np.stack([np.bincount(seg_local, outer[gi, a, b], n_seg) for a in range(3) for b in range(3)],
-                      1).reshape(n_seg, 3, 3)
-    snormal, soffset, smean, _ = _planes_of(scount, ss, souter)
-    scls = np.zeros(n_seg, np.int64)
-    scls[seg_local] = tcls[gi]
-    adjacent = _segment_adjacency(seg_of_tile, grid, mean, scls, cfg.merge_gap)
-    merged = _merge_groups(scls, snormal, soffset, smean, adjacent, cfg)
-    n_m = int(merged.max()) + 1 if n_seg else 0
-    mcount = np.bincount(merged, scount, n_m)
-    ms = np.stack([np.bincount(merged, ss[:, k], n_m) for k in range(3)], 1)
-    mouter = np.stack([np.bincount(merged, souter[:, a, b], n_m) for a in range(3) for b in range(3)],
-                      1).reshape(n_m, 3, 3)
-    mnormal, moffset, _, _ = _planes_of(mcount, ms, mouter)
-    # each static point: nearest merged plane among those of its own and the 8 neighbouring tiles
-    plane_grid = np.where(grid >= 0, merged[seg_of_tile[np.maximum(grid, 0)]], -1)
-    best = _nearest_candidate(p, cls_pt, tr, tc, plane_grid, mnormal, moffset, cfg.inlier_distance)
-    assign[static] = best
-    return assign
+    return connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
 
 
 def _shifted(grid: np.ndarray, dr: int, dc: int) -> np.ndarray:
@@ -282,62 +333,59 @@ def _shifted(grid: np.ndarray, dr: int, dc: int) -> np.ndarray:
 
 
 def _neighbour_pairs(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) ids of 8-neighbouring occupied cells of a (..., rows, cols) id grid (−1 empty), each pair once."""
-    a_all, b_all = [], []
+    """Distinct (a, b) ids of 8-neighbouring cells of a (..., rows, cols) id grid (−1 empty), each pair once."""
+    keys = []
+    n = int(grid.max()) + 1
     for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
         b = _shifted(grid, dr, dc)
-        m = (grid >= 0) & (b >= 0)
-        a_all.append(grid[m])
-        b_all.append(b[m])
-    return np.concatenate(a_all), np.concatenate(b_all)
+        m = (grid >= 0) & (b >= 0) & (grid != b)
+        lo, hi = np.minimum(grid[m], b[m]), np.maximum(grid[m], b[m])
+        keys.append(lo * n + hi)
+    keys = np.unique(np.concatenate(keys))
+    return keys // max(n, 1), keys % max(n, 1)
 
 
-def _segment_adjacency(seg_of_tile, grid, tile_mean, scls, gap) -> np.ndarray:
-    """(S, S) bool: segments with 8-neighbouring tiles, or with tile centroids within ``gap`` metres."""
-    n_seg = len(scls)
-    adj = np.zeros((n_seg, n_seg), bool)
-    if n_seg == 0:
-        return adj
-    sgrid = np.where(grid >= 0, seg_of_tile[np.maximum(grid, 0)], -1)
-    a, b = _neighbour_pairs(sgrid)
-    adj[a, b] = adj[b, a] = True
-    good = np.flatnonzero(seg_of_tile >= 0)
-    seg = seg_of_tile[good]
-    if gap > 0 and len(good) < 6000:
-        from scipy.spatial import cKDTree
+def _near_pairs(adjacent: np.ndarray, seg: np.ndarray, where: np.ndarray, gap: float) -> None:
+    """Mark segments adjacent (in place) when two of their tiles have centroids within ``gap`` metres."""
+    if gap <= 0 or len(seg) < 2:
+        return
+    from scipy.spatial import cKDTree
 
-        tree = cKDTree(tile_mean[good])
-        pairs = tree.query_pairs(gap, output_type="ndarray")
-        if len(pairs):
-            adj[seg[pairs[:, 0]], seg[pairs[:, 1]]] = True
-            adj[seg[pairs[:, 1]], seg[pairs[:, 0]]] = True
-    return adj
+    pairs = cKDTree(where).query_pairs(gap, output_type="ndarray")
+    if len(pairs):
+        adjacent[seg[pairs[:, 0]], seg[pairs[:, 1]]] = True
+        adjacent[seg[pairs[:, 1]], seg[pairs[:, 0]]] = True
 
 
-def _nearest_candidate(p, cls_pt, tr, tc, plane_grid, normal, offset, max_dist) -> np.ndarray:
-    """Per point: the plane (of its class) nearest to it among the planes of its tile and the 8 tiles around,
-    if within max_dist, else −1."""
-    trows, tcols = plane_grid.shape[1:]
-    best = np.full(len(p), -1, np.int64)
-    best_d = np.full(len(p), np.inf, np.float32)
+def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndarray:
+    """Per point: its own tile's plane when within max_dist, else the nearest plane (of its class) among the
+    8 neighbouring cells' planes within max_dist, else −1."""
+    ncls, trows, tcols = plane_grid.shape
     flat = plane_grid.reshape(-1)
-    if len(normal) == 0:
+    nrm, off = normal.astype(np.float32), offset.astype(np.float32)
+    own = flat[cell]
+    d_own = np.abs(np.einsum("ij,ij->i", p, nrm[np.maximum(own, 0)]) + off[np.maximum(own, 0)])
+    best = np.where((own >= 0) & (d_own <= max_dist), own, -1)
+    rest = np.flatnonzero(best < 0)
+    if len(rest) == 0:
         return best
-    nrm = normal.astype(np.float32)
-    off = offset.astype(np.float32)
+    q, c = p[rest], cell[rest]
+    cls, r, col = c // (trows * tcols), (c // tcols) % trows, c % tcols
+    best_r = np.full(len(rest), -1, np.int64)
+    best_d = np.full(len(rest), np.float32(max_dist))
     for dr in (-1, 0, 1):
-        r = tr + dr
-        inside = (r >= 0) & (r < trows)
-        rr = np.clip(r, 0, trows - 1)
+        rr = r + dr
+        inside = (rr >= 0) & (rr < trows)
         for dc in (-1, 0, 1):
-            cand = flat[(cls_pt * trows + rr) * tcols + (tc + dc) % tcols]
-            cand = np.where(inside, cand, -1)
-            has = cand >= 0
+            if dr == 0 and dc == 0:
+                continue
+            cand = np.where(inside, flat[(cls * trows + np.clip(rr, 0, trows - 1)) * tcols + (col + dc) % tcols], -1)
             ci = np.maximum(cand, 0)
-            d = np.abs(np.einsum("ij,ij->i", p, nrm[ci]) + off[ci])
-            take = has & (d < best_d) & (d <= max_dist)
-            best[take] = cand[take]
+            d = np.abs(np.einsum("ij,ij->i", q, nrm[ci]) + off[ci])
+            take = (cand >= 0) & (d <= best_d)
+            best_r[take] = cand[take]
             best_d[take] = d[take]
+    best[rest] = best_r
     return best
 
 
@@ -374,6 +422,9 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     normal, offset, mean, _ = _planes_of(count, s, outer)
     cls = np.array([c for c, _ in parts], np.int64)
     adjacent = _point_set_adjacency([pts[m] for _, m in parts], cfg.merge_gap)
+    if cfg.merge_floor_ceiling:
+        horiz = np.isin(cls, [C.FLOOR, C.CEILING])
+        adjacent |= horiz[:, None] & horiz[None, :]
     merged = _merge_groups(cls, normal, offset, mean, adjacent, cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
@@ -447,3 +498,47 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
     return {"n_truth": int(len(truth)), "n_recalled": len(hit),
             "recall": len(hit) / len(truth) if len(truth) else float("nan"), "purity": purity,
             "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
+
+
+def evaluate_detector(scenes, frames: int = 20, config=None, seed: int = 0, min_points: int = 200,
+                      progress: bool = True) -> dict:
+    """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
+
+    For each scene: ``frames`` scans of simulated_frames(scene, frames, seed=seed); per scene the recall
+    (recalled / ground-truth planes over all scans, see :func:`plane_quality`), the median purity over all
+    detected planes, planes per scan and the median detection time per scan (ms, wall clock, this process).
+    Returns {'detector', 'frames', 'seed', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
+    """
+    import time
+
+    from tqdm import tqdm
+
+    from .config import PlaneConfig
+    from .sim.frames import simulated_frames
+
+    cfg = config if config is not None else PlaneConfig()
+    out = {"detector": cfg.detector, "frames": frames, "seed": seed, "min_points": min_points, "scenes": {},
+           "scans": []}
+    for scene in scenes:
+        sim, instances = simulated_frames(scene, frames, seed=seed)
+        truth = recalled = 0
+        purity, n_planes, ms = [], [], []
+        for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} ({cfg.detector})",
+                                           disable=not progress, leave=False)):
+            t = time.perf_counter()
+            planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
+            ms.append(1000 * (time.perf_counter() - t))
+            q = plane_quality(assign, f.labels, inst, min_points)
+            truth, recalled = truth + q["n_truth"], recalled + q["n_recalled"]
+            purity += q["purity"]
+            n_planes.append(len(planes))
+            out["scans"].append({"scene": scene, "frame": i, "points": len(f.points), "planes": len(planes),
+                                 "truth": q["n_truth"], "recalled": q["n_recalled"], "missed": q["missed"],
+                                 "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
+                                 "ms": round(ms[-1], 3)})
+        out["scenes"][scene] = {"recall": recalled / truth if truth else float("nan"), "truth": truth,
+                                "recalled": recalled,
+                                "median_purity": float(np.median(purity)) if purity else float("nan"),
+                                "min_purity": float(np.min(purity)) if purity else float("nan"),
+                                "planes_per_scan": float(np.mean(n_planes)), "ms_per_scan": float(np.median(ms))}
+    return out
