@@ -109,6 +109,7 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | Non
         assign = _assign_open3d(pts, lab, cfg)
     else:
         raise ValueError(f"unknown plane detector {cfg.detector!r}; choose ring or open3d")
+    assign = _split_at_openings(pts, assign, ring, cfg)
     planes, assign = _refit(pts, lab, assign, cfg, frame)
     return (planes, assign) if return_inliers else planes
 
@@ -165,6 +166,86 @@ def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
     d_ij = np.abs(np.einsum("ij,ij->i", normal[i], mean[j]) + offset[i])
     d_ji = np.abs(np.einsum("ij,ij->i", normal[j], mean[i]) + offset[j])
     return (cls[i] == cls[j]) & (cos >= np.cos(np.radians(angle_deg))) & (d_ij <= distance) & (d_ji <= distance)
+
+
+def _empty_ray_directions(pts: np.ndarray, ring: np.ndarray | None, azimuth_bins: int) -> np.ndarray:
+    """(M, 3) unit directions of the scan's rays that returned nothing: empty cells of the ring × azimuth grid
+    (each ring's elevation is the mean of its points' elevations)."""
+    row, col = scan_rows_columns(pts, ring, azimuth_bins)
+    rows = int(row.max()) + 1
+    occupied = np.bincount(row * azimuth_bins + col, minlength=rows * azimuth_bins) > 0
+    elev = np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1]))
+    n = np.bincount(row, minlength=rows)
+    ring_elev = np.bincount(row, elev, rows) / np.maximum(n, 1)
+    empty = np.flatnonzero(~occupied & (n > 0).repeat(azimuth_bins))
+    e, a = ring_elev[empty // azimuth_bins], (empty % azimuth_bins + 0.5) * (2 * np.pi / azimuth_bins)
+    return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], 1)
+
+
+def _split_at_openings(pts: np.ndarray, assign: np.ndarray, ring: np.ndarray | None, cfg) -> np.ndarray:
+    """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
+    within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (at least
+    opening_min_points rays, returned behind the plane or not at all, cross the plane inside the gap). An
+    occluder in front leaves a gap too but no ray through it, so it splits nothing. Coplanar wall pieces
+    joined only by a lintel become separate planes. Sensor z is taken as up."""
+    if cfg.opening_width <= 0 or not np.any(assign >= 0):
+        return assign
+    assign = assign.copy()
+    idx = np.flatnonzero(assign >= 0)
+    order = idx[np.argsort(assign[idx], kind="stable")]
+    _, starts, counts = np.unique(assign[order], return_index=True, return_counts=True)
+    next_id = int(assign.max()) + 1
+    p64 = empty = None
+    for start, count in zip(starts, counts):
+        if count < cfg.min_points:
+            continue
+        members = order[start:start + count]
+        q = pts[members].astype(np.float64)
+        mean = q.mean(0)
+        normal = np.linalg.eigh((q - mean).T @ (q - mean))[1][:, 0]
+        if abs(normal[2]) > 0.3:
+            continue
+        along = np.cross([0.0, 0.0, 1.0], normal)
+        along /= np.linalg.norm(along)
+        u, v = q @ along, q[:, 2]
+        floor = np.percentile(v, 1)
+        low = np.sort(u[v < floor + cfg.opening_band])
+        gaps = np.flatnonzero(np.diff(low) > cfg.opening_width)
+        if len(gaps) == 0:
+            continue
+        if p64 is None:
+            p64 = pts.astype(np.float64)
+        offset = -normal @ mean
+        side = p64 @ normal + offset
+        if offset < 0:
+            side = -side
+            normal, offset = -normal, -offset
+        off = np.abs(side) > cfg.inlier_distance
+        ray = p64[off] / (offset - side[off])[:, None]  # scaled so that offset * ray lies on the plane
+        if empty is None:
+            empty = _empty_ray_directions(pts, ring, cfg.azimuth_bins)
+        toward = empty @ normal
+        away = toward < -1e-6  # a ray that returned nothing crosses the plane when it points away from it
+        ray = np.concatenate([ray, empty[away] / -toward[away][:, None]])
+        through = np.concatenate([side[off] < 0, np.ones(int(away.sum()), bool)])  # else an occluder in front
+        keep = (offset - np.concatenate([side[off], np.zeros(int(away.sum()))]) > 0)
+        cross = offset * ray[keep]
+        through = through[keep]
+        uc, vc = cross @ along, cross[:, 2]
+        band = (vc >= floor) & (vc < floor + cfg.opening_band)
+        uc, through = uc[band], through[band]
+        cuts = []
+        for g in gaps:
+            inside = (uc > low[g]) & (uc < low[g + 1])
+            n_through = np.count_nonzero(through[inside])
+            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(inside):
+                cuts.append((low[g] + low[g + 1]) / 2)
+        if cuts:
+            part = np.searchsorted(np.sort(cuts), u)
+            moved = part > 0
+            assign[members[moved]] = next_id + part[moved] - 1
+            next_id += len(cuts)
+    return assign
 
 
 def _refit(pts, lab, assign, cfg, frame) -> tuple[list[Plane], np.ndarray]:
