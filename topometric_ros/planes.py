@@ -103,14 +103,18 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | Non
         raise ValueError(f"{len(pts)} points but {len(lab)} labels")
     if ring is not None and len(ring) != len(pts):
         raise ValueError(f"{len(pts)} points but {len(ring)} ring ids")
-    if cfg.detector == "ring":
-        assign = _assign_ring(pts, lab, ring, cfg)
-    elif cfg.detector == "open3d":
-        assign = _assign_open3d(pts, lab, cfg)
-    else:
+    if cfg.detector not in ("ring", "open3d"):
         raise ValueError(f"unknown plane detector {cfg.detector!r}; choose ring or open3d")
-    assign = _split_at_openings(pts, assign, ring, cfg)
-    planes, assign = _refit(pts, lab, assign, cfg, frame)
+    if len(pts) == 0:
+        return ([], np.zeros(0, np.int32)) if return_inliers else []
+    rows_cols = scan_rows_columns(pts, ring, cfg.azimuth_bins)
+    if cfg.detector == "ring":
+        assign, normal, offset = _assign_ring(pts, lab, rows_cols, cfg)
+    else:
+        assign, normal, offset = _assign_open3d(pts, lab, cfg)
+    groups = _groups(assign)
+    groups = _split_at_openings(pts, groups, normal, offset, rows_cols, cfg)
+    planes, assign = _refit(pts, lab, groups, cfg, frame)
     return (planes, assign) if return_inliers else planes
 
 
@@ -143,20 +147,20 @@ def _planes_of(count, s, outer):
     return normal, offset, mean, lam
 
 
-def _merge_groups(cls, normal, offset, mean, adjacent: np.ndarray, cfg) -> np.ndarray:
+def _merge_groups(cls, normal, offset, mean, i: np.ndarray, j: np.ndarray, cfg) -> np.ndarray:
     """Merged group id for each part: parts of one class whose planes agree (normals within
-    normal_angle_deg, each centroid within merge_distance of the other plane) and that are ``adjacent``
-    ((P, P) bool) are joined, transitively."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    p = len(cls)
-    if p == 0:
+    normal_angle_deg, each centroid within merge_distance of the other plane) and that are adjacent (the
+    index pairs i, j) are joined, transitively."""
+    if len(cls) == 0:
         return np.zeros(0, np.int64)
-    i, j = np.nonzero(np.triu(adjacent, 1))
     ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
-    graph = coo_matrix((np.ones(int(ok.sum())), (i[ok], j[ok])), shape=(p, p))
-    return connected_components(graph, directed=False)[1]
+    return _components(len(cls), i[ok], j[ok])[1]
+
+
+def _all_pairs(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i < j) of the given indices."""
+    a, b = np.triu_indices(len(members), 1)
+    return members[a], members[b]
 
 
 def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
@@ -168,100 +172,106 @@ def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
     return (cls[i] == cls[j]) & (cos >= np.cos(np.radians(angle_deg))) & (d_ij <= distance) & (d_ji <= distance)
 
 
-def _empty_ray_directions(pts: np.ndarray, ring: np.ndarray | None, azimuth_bins: int) -> np.ndarray:
-    """(M, 3) unit directions of the scan's rays that returned nothing: empty cells of the ring × azimuth grid
-    (each ring's elevation is the mean of its points' elevations)."""
-    row, col = scan_rows_columns(pts, ring, azimuth_bins)
-    rows = int(row.max()) + 1
-    occupied = np.bincount(row * azimuth_bins + col, minlength=rows * azimuth_bins) > 0
-    elev = np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1]))
-    n = np.bincount(row, minlength=rows)
-    ring_elev = np.bincount(row, elev, rows) / np.maximum(n, 1)
-    empty = np.flatnonzero(~occupied & (n > 0).repeat(azimuth_bins))
-    e, a = ring_elev[empty // azimuth_bins], (empty % azimuth_bins + 0.5) * (2 * np.pi / azimuth_bins)
-    return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], 1)
+class _Rays:
+    """Every ray of the scan on the ring × azimuth grid: a point, or nothing (an empty cell; its direction
+    from the ring's mean elevation and the cell's azimuth centre). One point per cell is enough here."""
+
+    def __init__(self, pts: np.ndarray, row: np.ndarray, col: np.ndarray, azimuth_bins: int):
+        rows = int(row.max()) + 1
+        self.grid = np.full((rows, azimuth_bins), -1, np.int64)
+        self.grid[row, col] = np.arange(len(pts))
+        sub = slice(None, None, 7)  # a ring's elevation is nearly constant: a sample gives its mean
+        n = np.bincount(row[sub], minlength=rows)
+        elev = np.arctan2(pts[sub, 2], np.hypot(pts[sub, 0], pts[sub, 1]))
+        self.ring_elev = np.bincount(row[sub], elev, rows) / np.maximum(n, 1)
+        self.ring_seen = n > 0
+        self.pts, self.col, self.bins = pts, col, azimuth_bins
+
+    def between(self, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points, unit directions of empty rays) strictly between azimuth cells c0 and c1 (shorter arc)."""
+        w = self.bins
+        if (c1 - c0) % w > w // 2:
+            c0, c1 = c1, c0
+        if (c1 - c0) % w <= 1:
+            return self.pts[:0], np.zeros((0, 3))
+        cols = (c0 + 1 + np.arange((c1 - c0) % w - 1)) % w
+        block = self.grid[:, cols]
+        er, ec = np.nonzero((block < 0) & self.ring_seen[:, None])
+        e, az = self.ring_elev[er], (cols[ec] + 0.5) * (2 * np.pi / w)
+        empty = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], 1)
+        return self.pts[block[block >= 0]], empty
 
 
-def _split_at_openings(pts: np.ndarray, assign: np.ndarray, ring: np.ndarray | None, cfg) -> np.ndarray:
-    """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
-    within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (at least
-    opening_min_points rays, returned behind the plane or not at all, cross the plane inside the gap). An
-    occluder in front leaves a gap too but no ray through it, so it splits nothing. Coplanar wall pieces
-    joined only by a lintel become separate planes. Sensor z is taken as up."""
-    if cfg.opening_width <= 0 or not np.any(assign >= 0):
-        return assign
-    assign = assign.copy()
+def _groups(assign: np.ndarray) -> dict[int, np.ndarray]:
+    """{group id: indices of its points} for the ids >= 0 in ``assign``."""
     idx = np.flatnonzero(assign >= 0)
     order = idx[np.argsort(assign[idx], kind="stable")]
-    _, starts, counts = np.unique(assign[order], return_index=True, return_counts=True)
-    next_id = int(assign.max()) + 1
-    p64 = empty = None
-    for start, count in zip(starts, counts):
-        if count < cfg.min_points:
+    ids, starts = np.unique(assign[order], return_index=True)
+    return dict(zip(ids.tolist(), np.split(order, starts[1:])))
+
+
+def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset: np.ndarray, rows_cols,
+                       cfg) -> list[np.ndarray]:
+    """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
+    within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (of the rays
+    through the gap, at least opening_min_points and at least half returned behind the plane or not at all;
+    the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
+    nothing. Coplanar wall pieces joined only by a lintel become separate planes. Sensor z is taken as up.
+    groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); rows_cols:
+    each point's (row, column) on the scan grid (scan_rows_columns). Returns the point indices per plane."""
+    out = []
+    rays = None
+    for g, members in groups.items():
+        n, d = normal[g], offset[g]
+        if cfg.opening_width <= 0 or len(members) < cfg.min_points or abs(n[2]) > 0.3:
+            out.append(members)
             continue
-        members = order[start:start + count]
-        q = pts[members].astype(np.float64)
-        mean = q.mean(0)
-        normal = np.linalg.eigh((q - mean).T @ (q - mean))[1][:, 0]
-        if abs(normal[2]) > 0.3:
-            continue
-        along = np.cross([0.0, 0.0, 1.0], normal)
-        along /= np.linalg.norm(along)
+        along = np.array([-n[1], n[0], 0.0]) / np.hypot(n[0], n[1])
+        q = pts[members]
         u, v = q @ along, q[:, 2]
-        floor = np.percentile(v, 1)
-        low = np.sort(u[v < floor + cfg.opening_band])
-        gaps = np.flatnonzero(np.diff(low) > cfg.opening_width)
+        floor = np.partition(v, len(v) // 100)[len(v) // 100]
+        low = np.flatnonzero(v < floor + cfg.opening_band)
+        low = low[np.argsort(u[low])]
+        gaps = np.flatnonzero(np.diff(u[low]) > cfg.opening_width)
         if len(gaps) == 0:
+            out.append(members)
             continue
-        if p64 is None:
-            p64 = pts.astype(np.float64)
-        offset = -normal @ mean
-        side = p64 @ normal + offset
-        if offset < 0:
-            side = -side
-            normal, offset = -normal, -offset
-        off = np.abs(side) > cfg.inlier_distance
-        ray = p64[off] / (offset - side[off])[:, None]  # scaled so that offset * ray lies on the plane
-        if empty is None:
-            empty = _empty_ray_directions(pts, ring, cfg.azimuth_bins)
-        toward = empty @ normal
-        away = toward < -1e-6  # a ray that returned nothing crosses the plane when it points away from it
-        ray = np.concatenate([ray, empty[away] / -toward[away][:, None]])
-        through = np.concatenate([side[off] < 0, np.ones(int(away.sum()), bool)])  # else an occluder in front
-        keep = (offset - np.concatenate([side[off], np.zeros(int(away.sum()))]) > 0)
-        cross = offset * ray[keep]
-        through = through[keep]
-        uc, vc = cross @ along, cross[:, 2]
-        band = (vc >= floor) & (vc < floor + cfg.opening_band)
-        uc, through = uc[band], through[band]
+        if rays is None:
+            rays = _Rays(pts, rows_cols[0], rows_cols[1], cfg.azimuth_bins)
         cuts = []
-        for g in gaps:
-            inside = (uc > low[g]) & (uc < low[g + 1])
-            n_through = np.count_nonzero(through[inside])
-            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(inside):
-                cuts.append((low[g] + low[g + 1]) / 2)
+        for k in gaps:
+            x, e = rays.between(rays.col[members[low[k]]], rays.col[members[low[k + 1]]])
+            if len(x) + len(e) < cfg.opening_min_points:
+                continue
+            side = x @ n + d  # > 0 in front of the plane (sensor side), < 0 behind
+            hit = np.abs(side) > cfg.inlier_distance
+            x, side = x[hit], side[hit]
+            t = d / (d - side)  # the ray meets the plane at t * x
+            toward = e @ n
+            e = e[toward < -1e-6]
+            z = np.concatenate([t * x[:, 2], e[:, 2] * (d / -toward[toward < -1e-6])])
+            through = np.concatenate([side < 0, np.ones(len(e), bool)])
+            ok = (np.concatenate([t > 0, np.ones(len(e), bool)]) & (z >= floor) & (z < floor + cfg.opening_band))
+            n_through = np.count_nonzero(through & ok)
+            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(ok):
+                cuts.append((u[low[k]] + u[low[k + 1]]) / 2)
         if cuts:
             part = np.searchsorted(np.sort(cuts), u)
-            moved = part > 0
-            assign[members[moved]] = next_id + part[moved] - 1
-            next_id += len(cuts)
-    return assign
+            out += [members[part == i] for i in range(len(cuts) + 1)]
+        else:
+            out.append(members)
+    return out
 
 
-def _refit(pts, lab, assign, cfg, frame) -> tuple[list[Plane], np.ndarray]:
-    """Fit each assigned group with fit_plane on all its inliers; drop groups below min_points; renumber."""
-    idx = np.flatnonzero(assign >= 0)
+def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
+    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points.
+    Returns the planes and each point's plane index (−1 none)."""
     out = np.full(len(pts), -1, np.int32)
-    if len(idx) == 0:
-        return [], out
-    order = idx[np.argsort(assign[idx], kind="stable")]
-    groups, starts, counts = np.unique(assign[order], return_index=True, return_counts=True)
     planes = []
     rng = np.random.default_rng(0)
-    for start, count in zip(starts, counts):
-        if count < max(cfg.min_points, 3):
+    for members in groups:
+        if len(members) < max(cfg.min_points, 3):
             continue
-        members = order[start:start + count]
         cls = int(lab[members[0]])
         planes.append(fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng))
         out[members] = len(planes) - 1
@@ -291,7 +301,7 @@ _STATIC_INDEX = np.full(256, -1, np.int64)
 _STATIC_INDEX[list(C.STATIC)] = np.arange(len(C.STATIC))
 
 
-def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
+def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
     """Plane group per point (−1 none) on the organised scan.
 
     Static points go into tiles of the ring × azimuth grid per class (tile_rings × tile_columns cells, and
@@ -302,14 +312,14 @@ def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
     assign = np.full(len(pts), -1, np.int64)
     static = np.flatnonzero(_STATIC_INDEX[lab] >= 0)
     if len(static) < 3:
-        return assign
+        return assign, np.zeros((0, 3)), np.zeros(0)
     p = pts[static]
     ci = _STATIC_INDEX[lab[static]]
-    row, col = scan_rows_columns(p, None if ring is None else ring[static], cfg.azimuth_bins)
+    row, col = rows_cols[0][static], rows_cols[1][static]
     tiles = _quadtree_tiles(p, ci, row // cfg.tile_rings, col // cfg.tile_columns,
                             -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
     if tiles is None:
-        return assign
+        return assign, np.zeros((0, 3)), np.zeros(0)
     count, s, outer, normal, offset, mean, tcls, grid, cell = tiles
     # grow segments over neighbouring tiles that agree
     a, b = _neighbour_pairs(grid)
@@ -320,13 +330,18 @@ def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
     scls = np.zeros(n_seg, np.int64)
     scls[seg] = tcls
     # merge coplanar segments that touch (or nearly touch; floors and ceilings whatever the gap)
-    adjacent = np.zeros((n_seg, n_seg), bool)
-    adjacent[seg[a], seg[b]] = adjacent[seg[b], seg[a]] = True
-    _near_pairs(adjacent, seg, mean, cfg.merge_gap)
+    i, j = [seg[a]], [seg[b]]
+    near = _near_pairs(mean, cfg.merge_gap)
+    i.append(seg[near[0]])
+    j.append(seg[near[1]])
     if cfg.merge_floor_ceiling:
-        horiz = np.isin(scls, [_STATIC_INDEX[C.FLOOR], _STATIC_INDEX[C.CEILING]])
-        adjacent |= horiz[:, None] & horiz[None, :]
-    merged = _merge_groups(scls, snormal, soffset, smean, adjacent, cfg)
+        for c in (C.FLOOR, C.CEILING):
+            hi, hj = _all_pairs(np.flatnonzero(scls == _STATIC_INDEX[c]))
+            i.append(hi)
+            j.append(hj)
+    i, j = np.concatenate(i), np.concatenate(j)
+    pair = i != j
+    merged = _merge_groups(scls, snormal, soffset, smean, i[pair], j[pair], cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(*_sum_moments(merged, n_m, scount, ss, souter))
     plane_of_tile = merged[seg]
@@ -334,7 +349,7 @@ def _assign_ring(pts, lab, ring, cfg) -> np.ndarray:
     plane_grid = np.where(grid >= 0, plane_of_tile[np.maximum(grid, 0)], -1)
     best = _nearest_candidate(p, cell, plane_grid, mnormal, moffset, cfg.inlier_distance)
     assign[static] = best
-    return assign
+    return assign, mnormal, moffset
 
 
 def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
@@ -426,16 +441,14 @@ def _neighbour_pairs(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return keys // max(n, 1), keys % max(n, 1)
 
 
-def _near_pairs(adjacent: np.ndarray, seg: np.ndarray, where: np.ndarray, gap: float) -> None:
-    """Mark segments adjacent (in place) when two of their tiles have centroids within ``gap`` metres."""
-    if gap <= 0 or len(seg) < 2:
-        return
+def _near_pairs(where: np.ndarray, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs of the points ``where`` (K, 3) closer than ``gap`` metres."""
+    if gap <= 0 or len(where) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(where).query_pairs(gap, output_type="ndarray")
-    if len(pairs):
-        adjacent[seg[pairs[:, 0]], seg[pairs[:, 1]]] = True
-        adjacent[seg[pairs[:, 1]], seg[pairs[:, 0]]] = True
+    return pairs[:, 0], pairs[:, 1]
 
 
 def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndarray:
@@ -496,7 +509,7 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
             if len(inside) >= 3:
                 parts.append((cls, idx[inside]))
     if not parts:
-        return assign
+        return assign, np.zeros((0, 3)), np.zeros(0)
     member = np.concatenate([m for _, m in parts])
     part_id = np.repeat(np.arange(len(parts)), [len(m) for _, m in parts])
     count, s, outer = _moments(pts[member], part_id, len(parts))
@@ -506,7 +519,8 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     if cfg.merge_floor_ceiling:
         horiz = np.isin(cls, [C.FLOOR, C.CEILING])
         adjacent |= horiz[:, None] & horiz[None, :]
-    merged = _merge_groups(cls, normal, offset, mean, adjacent, cfg)
+    i, j = np.nonzero(np.triu(adjacent, 1))
+    merged = _merge_groups(cls, normal, offset, mean, i, j, cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
                                         np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
@@ -520,7 +534,7 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     first = np.ones(len(order), bool)
     first[1:] = member[order][1:] != member[order][:-1]
     assign[member[order][first]] = cand[order][first]
-    return assign
+    return assign, mnormal, moffset
 
 
 def _point_set_adjacency(sets: list[np.ndarray], gap: float, max_anchor: int = 400) -> np.ndarray:
