@@ -515,12 +515,13 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     count, s, outer = _moments(pts[member], part_id, len(parts))
     normal, offset, mean, _ = _planes_of(count, s, outer)
     cls = np.array([c for c, _ in parts], np.int64)
-    adjacent = _point_set_adjacency([pts[m] for _, m in parts], cfg.merge_gap)
-    if cfg.merge_floor_ceiling:
-        horiz = np.isin(cls, [C.FLOOR, C.CEILING])
-        adjacent |= horiz[:, None] & horiz[None, :]
-    i, j = np.nonzero(np.triu(adjacent, 1))
-    merged = _merge_groups(cls, normal, offset, mean, i, j, cfg)
+    i, j = _all_pairs(np.arange(len(parts)))
+    ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
+    i, j = i[ok], j[ok]
+    horiz = np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling
+    near = np.array([h or _sets_within(pts[parts[a][1]], pts[parts[b][1]], cfg.merge_gap)
+                     for a, b, h in zip(i, j, horiz)], bool)
+    merged = _merge_groups(cls, normal, offset, mean, i[near], j[near], cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
                                         np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
@@ -537,23 +538,13 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     return assign, mnormal, moffset
 
 
-def _point_set_adjacency(sets: list[np.ndarray], gap: float, max_anchor: int = 400) -> np.ndarray:
-    """(P, P) bool: point sets that come within ``gap`` metres of each other (on ≤ max_anchor anchors each)."""
+def _sets_within(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+    """Whether some point of a and some point of b are within ``gap`` metres."""
     from scipy.spatial import cKDTree
 
-    rng = np.random.default_rng(0)
-    anchors, owner = [], []
-    for k, q in enumerate(sets):
-        a = q if len(q) <= max_anchor else q[rng.choice(len(q), max_anchor, replace=False)]
-        anchors.append(a)
-        owner.append(np.full(len(a), k))
-    owner = np.concatenate(owner)
-    pairs = cKDTree(np.concatenate(anchors)).query_pairs(max(gap, 1e-6), output_type="ndarray")
-    adj = np.zeros((len(sets), len(sets)), bool)
-    if len(pairs):
-        adj[owner[pairs[:, 0]], owner[pairs[:, 1]]] = True
-        adj[owner[pairs[:, 1]], owner[pairs[:, 0]]] = True
-    return adj
+    small, large = (a, b) if len(a) <= len(b) else (b, a)
+    d, _ = cKDTree(large).query(small, k=1, distance_upper_bound=gap)
+    return bool(np.isfinite(d).any())
 
 
 # ---- quality against ground-truth plane instances ------------------------------------------------------
