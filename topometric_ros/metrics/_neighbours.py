@@ -23,6 +23,9 @@ _ROWS = 256
 #: chunks whose candidate lists are prepared together (bounds temporary memory)
 _BATCH = 1024
 
+#: voxel grid offset in voxel units (see voxel_moments)
+_GRID_PHASE = 0.3819660112501051
+
 #: index pairs of the 6 unique entries of a symmetric 3×3 matrix, in the order xx, xy, xz, yy, yz, zz
 SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -93,7 +96,10 @@ def voxel_moments(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarr
     Returns (centroids (V, 3), counts (V,), scatter (V, 6) Σ (x − c)(x − c)ᵀ, voxel index of each point (N,)).
     """
     pts = np.asarray(points, dtype=np.float64)
-    cell = np.floor((pts - pts.min(axis=0)) / size).astype(np.int64)
+    # boundaries at (k + 0.382) · size: off the round coordinates (planes at z = −1.0 m, ...), so a
+    # rounding-level change of the points does not move them across
+    cell = np.floor(pts / size - _GRID_PHASE).astype(np.int64)
+    cell -= cell.min(axis=0)
     dims = cell.max(axis=0) + 1
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
@@ -206,10 +212,10 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
                 a = q_s[r0:r1] - centre
                 ah = np.ones((len(a), 4))
                 ah[:, :3] = a
-                # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2
+                # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2; the mask is written as 0.0 / 1.0 in place
                 g = ah @ bh.T
-                mask = np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None])
-                out[r0:r1] = mask.astype(np.float64) @ feats
+                np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None], out=g)
+                out[r0:r1] = g @ feats
     n, cov = _covariances(out)
     counts[qorder] = n
     covs[qorder] = cov
