@@ -246,7 +246,7 @@ def _candidates(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
 
 
 def map_covariances(points: np.ndarray, radius: float, exact: bool = True, max_queries: int | None = None,
-                    seed: int = 0, voxel_ratio: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    seed: int = 0, voxel_ratio: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Neighbourhood count and covariance for the points of an aggregated map (MME / MPV).
 
     exact=True: every point (or ``max_queries`` points drawn uniformly with ``seed``) is a query against all

@@ -35,7 +35,7 @@ def mme_from_covariances(counts: np.ndarray, covs: np.ndarray, weights: np.ndarr
 
 
 def mme(clouds, poses, radius: float = 1.0, min_neighbours: int = 5, exact: bool = True,
-        max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.1) -> float:
+        max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.05) -> float:
     """Mean Map Entropy (nats) of sensor-frame clouds (N_i, 3) with (K, 4, 4) sensor-to-map poses.
 
     radius in metres. exact=False uses the voxel approximation (voxel side voxel_ratio · radius);

@@ -23,7 +23,7 @@ def mpv_from_covariances(counts: np.ndarray, covs: np.ndarray, weights: np.ndarr
 
 
 def mpv(clouds, poses, radius: float = 1.0, min_neighbours: int = 5, exact: bool = True,
-        max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.1) -> float:
+        max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.05) -> float:
     """Mean Plane Variance (m²) of sensor-frame clouds (N_i, 3) with (K, 4, 4) sensor-to-map poses.
 
     Parameters as mme().
@@ -34,7 +34,7 @@ def mpv(clouds, poses, radius: float = 1.0, min_neighbours: int = 5, exact: bool
 
 
 def mme_mpv(clouds, poses, radius: float = 1.0, min_neighbours: int = 5, exact: bool = True,
-            max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.1) -> tuple[float, float]:
+            max_queries: int | None = None, seed: int = 0, voxel_ratio: float = 0.05) -> tuple[float, float]:
     """(MME, MPV) from one neighbourhood pass: the same numbers as mme() and mpv(), half the time."""
     counts, covs, weights = map_covariances(aggregate_map(clouds, poses), radius, exact, max_queries, seed,
                                             voxel_ratio)
