@@ -320,9 +320,12 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
                             -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
     if tiles is None:
         return assign, np.zeros((0, 3)), np.zeros(0)
-    count, s, outer, normal, offset, mean, tcls, grid, cell = tiles
-    # grow segments over neighbouring tiles that agree
+    count, s, outer, normal, offset, mean, spread, tcls, grid, cell = tiles
+    # grow segments over neighbouring tiles that agree and are near in space too (not just in the image:
+    # a surface seen past an occluder or at a grazing angle can be far from its image neighbour)
     a, b = _neighbour_pairs(grid)
+    near = np.linalg.norm(mean[a] - mean[b], axis=1) <= 3.5 * (spread[a] + spread[b]) + cfg.merge_gap
+    a, b = a[near], b[near]
     ok = _coplanar(tcls, normal, offset, mean, a, b, cfg.tile_angle_deg, cfg.merge_distance)
     n_seg, seg = _components(len(count), a[ok], b[ok])
     scount, ss, souter = _sum_moments(seg, n_seg, count, s, outer)
@@ -353,9 +356,9 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
 
 
 def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
-    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, class
-    index) and the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar tile), plus each
-    point's flat cell index in that grid; None when no tile is planar."""
+    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, RMS
+    extent, class index), the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar
+    tile) and each point's flat cell index in that grid; None when no tile is planar."""
     levels = max(int(cfg.tile_levels), 1)
     f = 2 ** (levels - 1)
     trows = -(-(int(tr.max()) + 1) // f) * f
@@ -378,7 +381,8 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
         nrm, off, mean, lam = _planes_of(cc, cs, co)
         good = ((lam[:, 0] <= cc * cfg.tile_max_rms ** 2) & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0])
                 & (lam[:, 1] >= cc * 1e-6))
-        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good]))
+        spread = np.sqrt(lam[:, 2] / cc)  # RMS extent along the tile's longest direction
+        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good], spread[good]))
         used = np.zeros(covered.size, bool)
         used[cand[good]] = True
         covered = covered | used.reshape(covered.shape)
@@ -396,7 +400,7 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
         ids = ids.reshape(ncls, trows // m, pcols // m).repeat(m, axis=1).repeat(m, axis=2)
         grid = np.maximum(grid, ids)
         start += len(idx)
-    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 8)]
+    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 9)]
     tcls = np.concatenate([idx // ((trows // 2 ** k) * (pcols // 2 ** k)) for k, idx, *_ in chosen])
     grid = grid[:, :, :tcols]  # drop padding so that azimuth wraps around
     cell = (ci * trows + tr) * tcols + tc
