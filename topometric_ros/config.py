@@ -46,9 +46,11 @@ class PlaneConfig:
     merge_distance: float = 0.06  # m, largest offset between parts of one plane (each centroid to the other plane)
     merge_gap: float = 0.3  # m, coplanar wall/pillar parts farther apart than this stay separate planes
     merge_floor_ceiling: bool = True  # coplanar floor (ceiling) parts are one plane whatever the gap
+    merge_across_gaps: bool = True  # coplanar wall/pillar parts too (gaps behind occluders); openings split again
     opening_width: float = 0.5  # m, a wider see-through gap (door) near a wall's foot splits it; 0 = never
     opening_band: float = 1.0  # m, height above a wall's lowest inlier searched for openings
     opening_min_points: int = 5  # rays through the gap needed to call it an opening
+    opening_through: float = 0.2  # ... and at least this fraction of the gap's rays (others hit an occluder)
     # ring detector: tiles of the ring × azimuth grid
     azimuth_bins: int = 1800  # azimuth cells per revolution (VLP-32C at 10 Hz: 0.2°)
     tile_rings: int = 4  # rings per tile

@@ -214,8 +214,8 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
                        cfg) -> list[np.ndarray]:
     """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
     within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (of the rays
-    through the gap, at least opening_min_points and at least half returned behind the plane or not at all;
-    the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
+    through the gap, at least opening_min_points and a fraction opening_through returned behind the plane
+    or not at all; the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
     nothing. Coplanar wall pieces joined only by a lintel become separate planes. Sensor z is taken as up.
     groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); rows_cols:
     each point's (row, column) on the scan grid (scan_rows_columns). Returns the point indices per plane."""
@@ -253,7 +253,7 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
             through = np.concatenate([side < 0, np.ones(len(e), bool)])
             ok = (np.concatenate([t > 0, np.ones(len(e), bool)]) & (z >= floor) & (z < floor + cfg.opening_band))
             n_through = np.count_nonzero(through & ok)
-            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(ok):
+            if n_through >= cfg.opening_min_points and n_through >= cfg.opening_through * np.count_nonzero(ok):
                 cuts.append((u[low[k]] + u[low[k + 1]]) / 2)
         if cuts:
             part = np.searchsorted(np.sort(cuts), u)
@@ -337,9 +337,9 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
     near = _near_pairs(mean, cfg.merge_gap)
     i.append(seg[near[0]])
     j.append(seg[near[1]])
-    if cfg.merge_floor_ceiling:
-        for c in (C.FLOOR, C.CEILING):
-            hi, hj = _all_pairs(np.flatnonzero(scls == _STATIC_INDEX[c]))
+    for c in C.STATIC:
+        if (cfg.merge_floor_ceiling and c in (C.FLOOR, C.CEILING)) or (cfg.merge_across_gaps and c in (C.WALL, C.PILLAR)):
+            hi, hj = _all_pairs(np.flatnonzero((scls == _STATIC_INDEX[c]) & (scount >= cfg.min_points)))
             i.append(hi)
             j.append(hj)
     i, j = np.concatenate(i), np.concatenate(j)
