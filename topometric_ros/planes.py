@@ -3,6 +3,16 @@
 Everything here is in the SENSOR frame of the scan. A plane keeps the sufficient statistics of ALL its
 inliers (count, mean, scatter matrix), which transform exactly under a rigid motion, so a window can put
 a cached plane into its own frame without touching points again (see :meth:`Plane.transformed_stats`).
+
+Detection (:func:`detect_planes`), per static class, two detectors (config.planes.detector):
+- ``ring`` (default): the organised scan (ring × azimuth grid). Moments of tiles of the grid, a quadtree
+  that keeps the coarsest planar tile, region growing over neighbouring tiles that agree, merging of
+  coplanar segments; every point to the nearest plane of its own or a neighbouring tile. Vectorised numpy.
+- ``open3d``: ``PointCloud.detect_planar_patches`` (Araújo & Oliveira 2020, the paper's detector) on each
+  class, points in each patch box, coplanar patches of one surface merged.
+Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
+joined by a lintel) and refit every plane on all its inliers with :func:`fit_plane`.
+:func:`plane_quality` scores detections against the simulator's plane-instance ids.
 """
 from __future__ import annotations
 
@@ -99,6 +109,8 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | Non
     cfg = config if config is not None else PlaneConfig()
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     lab = np.asarray(labels).reshape(-1)
+    if lab.dtype.kind not in "iu":
+        raise ValueError(f"labels must be integer class ids, got dtype {lab.dtype}")
     if len(lab) != len(pts):
         raise ValueError(f"{len(pts)} points but {len(lab)} labels")
     if ring is not None and len(ring) != len(pts):
@@ -310,7 +322,7 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
     that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
     plane of its own or a neighbouring tile within inlier_distance."""
     assign = np.full(len(pts), -1, np.int64)
-    static = np.flatnonzero(_STATIC_INDEX[lab] >= 0)
+    static = np.flatnonzero(np.isin(lab, C.STATIC))
     if len(static) < 3:
         return assign, np.zeros((0, 3)), np.zeros(0)
     p = pts[static]
