@@ -502,8 +502,9 @@ def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndar
 # ---- open3d detector -----------------------------------------------------------------------------------
 
 def _assign_open3d(pts, lab, cfg) -> np.ndarray:
-    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class, coplanar patches
-    of one surface merged; a point goes to the nearest merged plane whose patch boxes contain it."""
+    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class: the points in each
+    patch's box, coplanar patches of one surface merged, then every point of the class to the nearest merged
+    plane within inlier_distance."""
     import open3d as o3d
 
     assign = np.full(len(pts), -1, np.int64)
@@ -534,23 +535,27 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     i, j = _all_pairs(np.arange(len(parts)))
     ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
     i, j = i[ok], j[ok]
-    horiz = np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling
+    any_gap = ((np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling)
+               | (np.isin(cls[i], [C.WALL, C.PILLAR]) & cfg.merge_across_gaps))
     near = np.array([h or _sets_within(pts[parts[a][1]], pts[parts[b][1]], cfg.merge_gap)
-                     for a, b, h in zip(i, j, horiz)], bool)
+                     for a, b, h in zip(i, j, any_gap)], bool)
     merged = _merge_groups(cls, normal, offset, mean, i[near], j[near], cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
                                         np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
                                         np.stack([np.bincount(merged, outer[:, a, b], n_m) for a in range(3)
                                                   for b in range(3)], 1).reshape(n_m, 3, 3))
-    cand = merged[part_id]
-    d = np.abs(np.einsum("ij,ij->i", pts[member].astype(np.float64), mnormal[cand]) + moffset[cand])
-    keep = d <= cfg.inlier_distance
-    member, cand, d = member[keep], cand[keep], d[keep]
-    order = np.lexsort((d, member))  # per point, nearest first
-    first = np.ones(len(order), bool)
-    first[1:] = member[order][1:] != member[order][:-1]
-    assign[member[order][first]] = cand[order][first]
+    mcls = np.zeros(n_m, np.int64)
+    mcls[merged] = cls
+    # every point of a class to the nearest merged plane of that class within inlier_distance (patch boxes
+    # cover only parts of a surface, e.g. a floor seen on sparse rings); openings split planes later
+    for c in np.unique(mcls):
+        idx = np.flatnonzero(lab == c)
+        ids = np.flatnonzero(mcls == c)
+        d = np.abs(pts[idx].astype(np.float64) @ mnormal[ids].T + moffset[ids])
+        best = np.argmin(d, axis=1)
+        ok = d[np.arange(len(idx)), best] <= cfg.inlier_distance
+        assign[idx[ok]] = ids[best[ok]]
     return assign, mnormal, moffset
 
 
