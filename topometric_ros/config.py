@@ -40,6 +40,7 @@ class PlaneConfig:
 
     detector: str = "ring"  # ring (fast, uses the scan structure) | open3d (detect_planar_patches)
     min_points: int = 50  # smallest plane kept
+    min_width: float = 0.02  # m, RMS spread of a plane's inliers across its long axis; narrower = a line, dropped
     max_sample_points: int = 256  # inlier points kept per plane for display (stats use all inliers)
     inlier_distance: float = 0.05  # m, largest point-to-plane distance of an inlier
     normal_angle_deg: float = 10.0  # deg, largest angle between normals of parts of one plane

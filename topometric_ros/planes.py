@@ -276,7 +276,8 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
 
 
 def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
-    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points.
+    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points or
+    narrower than min_width.
     Returns the planes and each point's plane index (−1 none)."""
     out = np.full(len(pts), -1, np.int32)
     planes = []
@@ -285,7 +286,10 @@ def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane],
         if len(members) < max(cfg.min_points, 3):
             continue
         cls = int(lab[members[0]])
-        planes.append(fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng))
+        plane = fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng)
+        if np.linalg.eigvalsh(plane.scatter)[1] < len(members) * cfg.min_width ** 2:
+            continue  # a line (e.g. where a spurious plane crosses a real one), not a plane
+        planes.append(plane)
         out[members] = len(planes) - 1
     return planes, out
 
