@@ -9,7 +9,7 @@ import numpy as np
 from benchmarks.common import median_ms, record, single_core
 
 
-def main(frames: int = 20, repeats: int = 3, open3d_frames: int = 5) -> dict:
+def main(frames: int = 20, repeats: int = 3, open3d_frames: int = 3) -> dict:
     single_core()
     from topometric_ros.config import PlaneConfig
     from topometric_ros.planes import detect_planes
