@@ -3,6 +3,16 @@
 Everything here is in the SENSOR frame of the scan. A plane keeps the sufficient statistics of ALL its
 inliers (count, mean, scatter matrix), which transform exactly under a rigid motion, so a window can put
 a cached plane into its own frame without touching points again (see :meth:`Plane.transformed_stats`).
+
+Detection (:func:`detect_planes`), per static class, two detectors (config.planes.detector):
+- ``ring`` (default): the organised scan (ring × azimuth grid). Moments of tiles of the grid, a quadtree
+  that keeps the coarsest planar tile, region growing over neighbouring tiles that agree, merging of
+  coplanar segments; every point to the nearest plane of its own or a neighbouring tile. Vectorised numpy.
+- ``open3d``: ``PointCloud.detect_planar_patches`` (Araújo & Oliveira 2020, the paper's detector) on each
+  class, points in each patch box, coplanar patches of one surface merged.
+Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
+joined by a lintel) and refit every plane on all its inliers with :func:`fit_plane`.
+:func:`plane_quality` scores detections against the simulator's plane-instance ids.
 """
 from __future__ import annotations
 
@@ -99,6 +109,8 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | Non
     cfg = config if config is not None else PlaneConfig()
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     lab = np.asarray(labels).reshape(-1)
+    if lab.dtype.kind not in "iu":
+        raise ValueError(f"labels must be integer class ids, got dtype {lab.dtype}")
     if len(lab) != len(pts):
         raise ValueError(f"{len(pts)} points but {len(lab)} labels")
     if ring is not None and len(ring) != len(pts):
@@ -214,8 +226,8 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
                        cfg) -> list[np.ndarray]:
     """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
     within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (of the rays
-    through the gap, at least opening_min_points and at least half returned behind the plane or not at all;
-    the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
+    through the gap, at least opening_min_points and a fraction opening_through returned behind the plane
+    or not at all; the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
     nothing. Coplanar wall pieces joined only by a lintel become separate planes. Sensor z is taken as up.
     groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); rows_cols:
     each point's (row, column) on the scan grid (scan_rows_columns). Returns the point indices per plane."""
@@ -253,7 +265,7 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
             through = np.concatenate([side < 0, np.ones(len(e), bool)])
             ok = (np.concatenate([t > 0, np.ones(len(e), bool)]) & (z >= floor) & (z < floor + cfg.opening_band))
             n_through = np.count_nonzero(through & ok)
-            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(ok):
+            if n_through >= cfg.opening_min_points and n_through >= cfg.opening_through * np.count_nonzero(ok):
                 cuts.append((u[low[k]] + u[low[k + 1]]) / 2)
         if cuts:
             part = np.searchsorted(np.sort(cuts), u)
@@ -264,7 +276,8 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
 
 
 def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
-    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points.
+    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points or
+    narrower than min_width.
     Returns the planes and each point's plane index (−1 none)."""
     out = np.full(len(pts), -1, np.int32)
     planes = []
@@ -273,7 +286,10 @@ def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane],
         if len(members) < max(cfg.min_points, 3):
             continue
         cls = int(lab[members[0]])
-        planes.append(fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng))
+        plane = fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng)
+        if np.linalg.eigvalsh(plane.scatter)[1] < len(members) * cfg.min_width ** 2:
+            continue  # a line (e.g. where a spurious plane crosses a real one), not a plane
+        planes.append(plane)
         out[members] = len(planes) - 1
     return planes, out
 
@@ -310,7 +326,7 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
     that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
     plane of its own or a neighbouring tile within inlier_distance."""
     assign = np.full(len(pts), -1, np.int64)
-    static = np.flatnonzero(_STATIC_INDEX[lab] >= 0)
+    static = np.flatnonzero(np.isin(lab, C.STATIC))
     if len(static) < 3:
         return assign, np.zeros((0, 3)), np.zeros(0)
     p = pts[static]
@@ -320,9 +336,12 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
                             -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
     if tiles is None:
         return assign, np.zeros((0, 3)), np.zeros(0)
-    count, s, outer, normal, offset, mean, tcls, grid, cell = tiles
-    # grow segments over neighbouring tiles that agree
+    count, s, outer, normal, offset, mean, spread, tcls, grid, cell = tiles
+    # grow segments over neighbouring tiles that agree and are near in space too (not just in the image:
+    # a surface seen past an occluder or at a grazing angle can be far from its image neighbour)
     a, b = _neighbour_pairs(grid)
+    near = np.linalg.norm(mean[a] - mean[b], axis=1) <= 3.5 * (spread[a] + spread[b]) + cfg.merge_gap
+    a, b = a[near], b[near]
     ok = _coplanar(tcls, normal, offset, mean, a, b, cfg.tile_angle_deg, cfg.merge_distance)
     n_seg, seg = _components(len(count), a[ok], b[ok])
     scount, ss, souter = _sum_moments(seg, n_seg, count, s, outer)
@@ -334,9 +353,9 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
     near = _near_pairs(mean, cfg.merge_gap)
     i.append(seg[near[0]])
     j.append(seg[near[1]])
-    if cfg.merge_floor_ceiling:
-        for c in (C.FLOOR, C.CEILING):
-            hi, hj = _all_pairs(np.flatnonzero(scls == _STATIC_INDEX[c]))
+    for c in C.STATIC:
+        if (cfg.merge_floor_ceiling and c in (C.FLOOR, C.CEILING)) or (cfg.merge_across_gaps and c in (C.WALL, C.PILLAR)):
+            hi, hj = _all_pairs(np.flatnonzero((scls == _STATIC_INDEX[c]) & (scount >= cfg.min_points)))
             i.append(hi)
             j.append(hj)
     i, j = np.concatenate(i), np.concatenate(j)
@@ -353,9 +372,9 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
 
 
 def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
-    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, class
-    index) and the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar tile), plus each
-    point's flat cell index in that grid; None when no tile is planar."""
+    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, RMS
+    extent, class index), the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar
+    tile) and each point's flat cell index in that grid; None when no tile is planar."""
     levels = max(int(cfg.tile_levels), 1)
     f = 2 ** (levels - 1)
     trows = -(-(int(tr.max()) + 1) // f) * f
@@ -378,7 +397,8 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
         nrm, off, mean, lam = _planes_of(cc, cs, co)
         good = ((lam[:, 0] <= cc * cfg.tile_max_rms ** 2) & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0])
                 & (lam[:, 1] >= cc * 1e-6))
-        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good]))
+        spread = np.sqrt(lam[:, 2] / cc)  # RMS extent along the tile's longest direction
+        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good], spread[good]))
         used = np.zeros(covered.size, bool)
         used[cand[good]] = True
         covered = covered | used.reshape(covered.shape)
@@ -396,7 +416,7 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
         ids = ids.reshape(ncls, trows // m, pcols // m).repeat(m, axis=1).repeat(m, axis=2)
         grid = np.maximum(grid, ids)
         start += len(idx)
-    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 8)]
+    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 9)]
     tcls = np.concatenate([idx // ((trows // 2 ** k) * (pcols // 2 ** k)) for k, idx, *_ in chosen])
     grid = grid[:, :, :tcols]  # drop padding so that azimuth wraps around
     cell = (ci * trows + tr) * tcols + tc
@@ -486,8 +506,9 @@ def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndar
 # ---- open3d detector -----------------------------------------------------------------------------------
 
 def _assign_open3d(pts, lab, cfg) -> np.ndarray:
-    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class, coplanar patches
-    of one surface merged; a point goes to the nearest merged plane whose patch boxes contain it."""
+    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class: the points in each
+    patch's box, coplanar patches of one surface merged, then every point of the class to the nearest merged
+    plane within inlier_distance."""
     import open3d as o3d
 
     assign = np.full(len(pts), -1, np.int64)
@@ -518,23 +539,27 @@ def _assign_open3d(pts, lab, cfg) -> np.ndarray:
     i, j = _all_pairs(np.arange(len(parts)))
     ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
     i, j = i[ok], j[ok]
-    horiz = np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling
+    any_gap = ((np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling)
+               | (np.isin(cls[i], [C.WALL, C.PILLAR]) & cfg.merge_across_gaps))
     near = np.array([h or _sets_within(pts[parts[a][1]], pts[parts[b][1]], cfg.merge_gap)
-                     for a, b, h in zip(i, j, horiz)], bool)
+                     for a, b, h in zip(i, j, any_gap)], bool)
     merged = _merge_groups(cls, normal, offset, mean, i[near], j[near], cfg)
     n_m = int(merged.max()) + 1
     mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
                                         np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
                                         np.stack([np.bincount(merged, outer[:, a, b], n_m) for a in range(3)
                                                   for b in range(3)], 1).reshape(n_m, 3, 3))
-    cand = merged[part_id]
-    d = np.abs(np.einsum("ij,ij->i", pts[member].astype(np.float64), mnormal[cand]) + moffset[cand])
-    keep = d <= cfg.inlier_distance
-    member, cand, d = member[keep], cand[keep], d[keep]
-    order = np.lexsort((d, member))  # per point, nearest first
-    first = np.ones(len(order), bool)
-    first[1:] = member[order][1:] != member[order][:-1]
-    assign[member[order][first]] = cand[order][first]
+    mcls = np.zeros(n_m, np.int64)
+    mcls[merged] = cls
+    # every point of a class to the nearest merged plane of that class within inlier_distance (patch boxes
+    # cover only parts of a surface, e.g. a floor seen on sparse rings); openings split planes later
+    for c in np.unique(mcls):
+        idx = np.flatnonzero(lab == c)
+        ids = np.flatnonzero(mcls == c)
+        d = np.abs(pts[idx].astype(np.float64) @ mnormal[ids].T + moffset[ids])
+        best = np.argmin(d, axis=1)
+        ok = d[np.arange(len(idx)), best] <= cfg.inlier_distance
+        assign[idx[ok]] = ids[best[ok]]
     return assign, mnormal, moffset
 
 
