@@ -20,8 +20,11 @@ _FINE = 4
 _CHUNK = 4
 #: query rows per dense product (keeps the masks in cache)
 _ROWS = 256
-#: chunks whose candidate lists are prepared together (bounds temporary memory)
+#: chunks whose candidate runs are found together
 _BATCH = 1024
+#: most candidate indices held at once, and most mask elements per dense product (bound the memory)
+_MAX_INDEX = 1 << 23
+_MAX_ELEMENTS = 1 << 21
 
 #: voxel grid offset in voxel units (see voxel_moments)
 _GRID_PHASE = 0.3819660112501051
@@ -192,39 +195,54 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
     stencil = np.arange(-_FINE, _CHUNK + _FINE)
     out = np.empty((len(q), 10))
     for b0 in range(0, len(first), _BATCH):
-        sl = slice(b0, b0 + _BATCH)
-        idx, offs = _candidates(bmin[sl], bmax[sl], chunk_cell[sl], stencil, lo, h, r, dims, key)
-        for j in range(len(offs) - 1):
-            rows = slice(first[b0 + j], last[b0 + j])
-            cand = idx[offs[j]:offs[j + 1]]
-            if len(cand) == 0:
-                out[rows] = 0.0
-                continue
-            centre = 0.5 * (bmin[b0 + j] + bmax[b0 + j])
-            local = src_s[cand] - centre
-            feats = _moment_features(local, None if w_s is None else w_s[cand],
-                                     None if sc_s is None else sc_s[cand])
-            bh = np.empty((len(local), 4))
-            bh[:, :3] = local
-            bh[:, 3] = -0.5 * np.einsum("ij,ij->i", local, local)
-            for r0 in range(rows.start, rows.stop, _ROWS):
-                r1 = min(r0 + _ROWS, rows.stop)
-                a = q_s[r0:r1] - centre
-                ah = np.ones((len(a), 4))
-                ah[:, :3] = a
-                # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2; the mask is written as 0.0 / 1.0 in place
-                g = ah @ bh.T
-                np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None], out=g)
-                out[r0:r1] = g @ feats
+        b1 = min(b0 + _BATCH, len(first))
+        starts, ends, per_chunk = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo, h,
+                                                    r, dims, key)
+        range_offs = np.concatenate(([0], np.cumsum(per_chunk[1])))
+        # index arrays for groups of chunks holding at most _MAX_INDEX candidates together
+        c0 = 0
+        while c0 < b1 - b0:
+            total = np.cumsum(per_chunk[0][c0:])
+            c1 = c0 + max(1, int(np.searchsorted(total, _MAX_INDEX, side="right")))
+            idx = _ranges_index(starts[range_offs[c0]:range_offs[c1]], ends[range_offs[c0]:range_offs[c1]])
+            offs = np.concatenate(([0], total[:c1 - c0]))
+            for j in range(c1 - c0):
+                c = b0 + c0 + j
+                _chunk_moments(q_s, first[c], last[c], 0.5 * (bmin[c] + bmax[c]), src_s, w_s, sc_s,
+                               idx[offs[j]:offs[j + 1]], r, out)
+            c0 = c1
     n, cov = _covariances(out)
     counts[qorder] = n
     covs[qorder] = cov
     return counts, covs
 
 
-def _candidates(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
-    """Source indices (sorted order) that may lie within r of each chunk's box, as one index array and
-    per-chunk offsets. Cells are pruned per (x, y) column by the exact box distance."""
+def _chunk_moments(q_s, row0, row1, centre, src_s, w_s, sc_s, cand, r, out) -> None:
+    """Moment sums (rows row0:row1 of out) of the candidates within r of each query of one chunk."""
+    if len(cand) == 0:
+        out[row0:row1] = 0.0
+        return
+    local = src_s[cand] - centre
+    feats = _moment_features(local, None if w_s is None else w_s[cand], None if sc_s is None else sc_s[cand])
+    bh = np.empty((len(local), 4))
+    bh[:, :3] = local
+    bh[:, 3] = -0.5 * np.einsum("ij,ij->i", local, local)
+    step = max(8, min(_ROWS, _MAX_ELEMENTS // len(cand)))
+    for r0 in range(row0, row1, step):
+        r1 = min(r0 + step, row1)
+        a = q_s[r0:r1] - centre
+        ah = np.ones((len(a), 4))
+        ah[:, :3] = a
+        # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2; the mask is written as 0.0 / 1.0 in place
+        g = ah @ bh.T
+        np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None], out=g)
+        out[r0:r1] = g @ feats
+
+
+def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
+    """Runs [start, end) of sorted sources that may lie within r of each chunk's box: one run per (x, y)
+    column of cells, pruned by the exact box distance. Returns (starts, ends, (candidates per chunk,
+    runs per chunk)), runs in chunk order."""
     gx = chunk_cell[:, 0, None] + stencil[None, :]  # (C, S)
     gy = chunk_cell[:, 1, None] + stencil[None, :]
     dx = np.maximum(np.maximum(lo[0] + gx * h - bmax[:, 0, None], bmin[:, 0, None] - (lo[0] + (gx + 1) * h)), 0)
@@ -232,17 +250,15 @@ def _candidates(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
     d2 = dx[:, :, None] ** 2 + dy[:, None, :] ** 2  # (C, S, S)
     inside = ((gx >= 0) & (gx < dims[0]))[:, :, None] & ((gy >= 0) & (gy < dims[1]))[:, None, :] & (d2 <= r * r)
     dz = np.sqrt(np.maximum(r * r - d2, 0.0))
-    z0 = np.floor((bmin[:, 2, None, None] - dz - lo[2]) / h).astype(np.int64)
-    z1 = np.floor((bmax[:, 2, None, None] + dz - lo[2]) / h).astype(np.int64)
-    z0 = np.clip(z0, 0, dims[2])
-    z1 = np.clip(z1 + 1, 0, dims[2])
+    z0 = np.clip(np.floor((bmin[:, 2, None, None] - dz - lo[2]) / h).astype(np.int64), 0, dims[2])
+    z1 = np.clip(np.floor((bmax[:, 2, None, None] + dz - lo[2]) / h).astype(np.int64) + 1, 0, dims[2])
     base = (gx[:, :, None] * dims[1] + gy[:, None, :]) * dims[2]
-    s = np.searchsorted(key, (base + z0)[inside])
-    e = np.searchsorted(key, (base + z1)[inside])
-    lens = np.zeros(inside.shape, np.int64)
-    lens[inside] = e - s
-    offs = np.concatenate(([0], np.cumsum(lens.reshape(len(bmin), -1).sum(axis=1))))
-    return _ranges_index(s, e), offs
+    starts = np.searchsorted(key, (base + z0)[inside])
+    ends = np.searchsorted(key, (base + z1)[inside])
+    chunk_of_run = np.nonzero(inside)[0]
+    per_chunk = np.bincount(chunk_of_run, ends - starts, minlength=len(bmin)).astype(np.int64)
+    runs = np.bincount(chunk_of_run, minlength=len(bmin))
+    return starts, ends, (per_chunk, runs)
 
 
 def map_covariances(points: np.ndarray, radius: float, exact: bool = True, max_queries: int | None = None,
