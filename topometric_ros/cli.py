@@ -80,6 +80,29 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval_seg(args: argparse.Namespace) -> int:
+    from .config import SegmentationConfig
+    from .segmentation.data import expand_bags
+    from .segmentation.evaluate import evaluate_bags, format_table, write_report
+
+    bags = expand_bags(args.bags)
+    segmenter = None
+    if args.mode == "network":
+        from .segmentation.infer import Segmenter
+
+        segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
+                                                             threads=args.threads))
+    result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
+    metrics = write_report(result, args.out, args.title)
+    print(format_table(metrics["rows"]))
+    sp = metrics["speed"]
+    if sp.get("scans"):
+        print(f"speed: {sp['scans_per_s']} scans/s (median {sp['median_ms']} ms/scan over {sp['scans']} scans, "
+              f"{args.device}, {args.threads} thread(s), projection + network + back-projection)")
+    print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -118,6 +141,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
     t.set_defaults(func=cmd_train)
 
+    e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
+    e.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/test)")
+    e.add_argument("--weights", default="", help="weights file (default: the shipped ones)")
+    e.add_argument("--mode", default="network", choices=("network", "labels"),
+                   help="network, or labels (score the cloud's own label field: a sanity check)")
+    e.add_argument("--device", default="cpu", help="cpu or cuda")
+    e.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    e.add_argument("--every", type=int, default=1, help="use every n-th scan")
+    e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
+    e.add_argument("--title", default="", help="title of the confusion-matrix plot")
+    e.add_argument("--out", default="out/eval_seg")
+    e.set_defaults(func=cmd_eval_seg)
+
     d = sub.add_parser("demo", help="the main job on simulated data")
     d.add_argument("--out", default="out/demo")
     d.add_argument("--frames", type=int, default=150)
@@ -135,8 +171,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
+        from .segmentation.infer import SegmentationError
 
-        if isinstance(e, BagError):
+        if isinstance(e, (BagError, SegmentationError)):
             print(f"error: {e}", file=sys.stderr)
             return 2
         raise

@@ -165,7 +165,7 @@ def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags:
                   "units": "range/x/y/z in m (sensor frame), intensity 0..255, valid 0/1"},
         "training": {"command": command, "bags": [str(b) for b in bags], "val_bags": [str(b) for b in val_bags],
                      "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
-                     "torch": torch.__version__, "history": history},
+                     "torch": str(torch.__version__), "history": history},
         "metrics": {"val": {k: last[k] for k in ("val_miou", "val_iou") if k in last}},
     }
 
@@ -248,6 +248,7 @@ def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / WEIGHTS_NAME
     state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
+    card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
     torch.save({"model_card": card, "state_dict": state}, path)
     doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
                                "bytes": path.stat().st_size}}
