@@ -1,6 +1,7 @@
 """The network, the Segmenter and its weight loading (untrained nets; the shipped weights in test_seg_shipped)."""
 from __future__ import annotations
 
+import copy
 import os
 import pickle
 
@@ -11,9 +12,9 @@ import torch
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig
 from topometric_ros.segmentation.infer import SegmentationError, Segmenter, load_weights
-from topometric_ros.segmentation.model import ModelSpec, RangeNet
+from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, lovasz_softmax, model_card,
-                                               save_weights)
+                                               save_weights, state_digest)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -33,6 +34,11 @@ def _random_weights(path, seed=0):
     return model.eval(), save_weights(model, card, path)
 
 
+def _save(path, card, state):
+    """A weights file with a valid digest of ``state`` (so only the shape/key checks can object)."""
+    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
+
+
 def test_circular_padding_makes_the_net_equivariant_to_azimuth_rolls():
     torch.manual_seed(0)
     model = RangeNet(ModelSpec()).eval()
@@ -44,6 +50,15 @@ def test_circular_padding_makes_the_net_equivariant_to_azimuth_rolls():
             torch.testing.assert_close(model(x.roll(k * step, -1)), y.roll(k * step, -1), atol=1e-4, rtol=1e-4)
         model.set_circular(False)  # zero padding breaks the wrap-around
         assert not torch.allclose(model(x.roll(step, -1)), y.roll(step, -1), atol=1e-3)
+
+
+def test_folding_batchnorm_keeps_the_outputs(tmp_path):
+    model, _ = _random_weights(tmp_path)
+    x = torch.randn(2, 6, 32, 64)
+    folded = fold_batchnorm(copy.deepcopy(model))
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    with torch.no_grad():
+        torch.testing.assert_close(folded(x), model(x), atol=1e-4, rtol=1e-4)
 
 
 def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames):
@@ -101,15 +116,14 @@ def test_wrong_shapes_and_keys_raise_segmentation_error(tmp_path, frames):
     card, state = load_weights(path)
     key = "stem.conv.weight"
     wrong = dict(state, **{key: torch.zeros(3, 3, 3, 3)})
-    torch.save({"model_card": card, "state_dict": wrong}, tmp_path / "shape.pt")
+    _save(tmp_path / "shape.pt", card, wrong)
     with pytest.raises(SegmentationError, match="stem.conv.weight"):
         Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "shape.pt")))
     missing = {k: v for k, v in state.items() if k != key}
-    torch.save({"model_card": card, "state_dict": missing}, tmp_path / "missing.pt")
+    _save(tmp_path / "missing.pt", card, missing)
     with pytest.raises(SegmentationError, match="missing"):
         Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "missing.pt")))
-    torch.save({"model_card": {**card, "model": {**card["model"], "widths": [8, 8, 8]}}, "state_dict": state},
-               tmp_path / "card.pt")
+    _save(tmp_path / "card.pt", {**card, "model": {**card["model"], "widths": [8, 8, 8]}}, state)
     with pytest.raises(SegmentationError, match="needs"):
         Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "card.pt")))
     torch.save([1, 2, 3], tmp_path / "list.pt")
@@ -117,12 +131,23 @@ def test_wrong_shapes_and_keys_raise_segmentation_error(tmp_path, frames):
         load_weights(tmp_path / "list.pt")
 
 
-def test_modified_weights_fail_the_model_card_checksum(tmp_path):
+def test_modified_weights_fail_the_checksums(tmp_path):
     _, path = _random_weights(tmp_path)
     card, state = load_weights(path)
     state["head.bias"] = state["head.bias"] + 1  # a valid file, but not the one the card describes
-    torch.save({"model_card": card, "state_dict": state}, path)
-    with pytest.raises(SegmentationError, match="sha256"):
+    _save(path, card, state)
+    with pytest.raises(SegmentationError, match="sha256"):  # model_card.json beside it names the file's hash
+        load_weights(path)
+    (tmp_path / "model_card.json").unlink()
+    load_weights(path)  # consistent digest, no card beside it: loads
+    doc = torch.load(path, weights_only=True)
+    doc["state_dict"]["head.bias"][0] += 1e-3  # tensors changed after the digest was taken
+    torch.save(doc, path)
+    with pytest.raises(SegmentationError, match="checksum mismatch"):
+        load_weights(path)
+    del doc["state_sha256"]
+    torch.save(doc, path)
+    with pytest.raises(SegmentationError, match="no state_sha256"):
         load_weights(path)
 
 

@@ -16,9 +16,9 @@ import torch
 
 from .. import classes as C
 from ..config import SegmentationConfig
-from .model import ModelSpec, RangeNet
+from .model import ModelSpec, RangeNet, fold_batchnorm
 from .projection import HEIGHT, WIDTH, Projection, project
-from .train import CARD_NAME, FORMAT_VERSION, WEIGHTS_NAME
+from .train import CARD_NAME, FORMAT_VERSION, WEIGHTS_NAME, state_digest
 
 SHIPPED = Path(__file__).resolve().parent / "weights" / WEIGHTS_NAME
 
@@ -43,7 +43,20 @@ def load_weights(path: str | Path) -> tuple[dict, dict]:
         raise SegmentationError(f"{path}: expected {{'model_card': dict, 'state_dict': dict}}, got {type(doc).__name__}"
                                 + (f" with keys {sorted(map(str, doc))}" if isinstance(doc, dict) else ""))
     _check_checksum(path)
-    return doc["model_card"], doc["state_dict"]
+    state = doc["state_dict"]
+    bad = [str(k) for k, v in state.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
+    if bad:
+        raise SegmentationError(f"{path}: state dict entries that are not named tensors: {bad[:5]}")
+    _check_state_digest(state, doc.get("state_sha256"), str(path))
+    return doc["model_card"], state
+
+
+def _check_state_digest(state: dict, digest: object, source: str) -> None:
+    """The tensors must hash to the digest saved with them (catches modified or corrupted weights)."""
+    if not isinstance(digest, str):
+        raise SegmentationError(f"{source}: no state_sha256 digest; not a weights file written by topometric train")
+    if state_digest(state) != digest:
+        raise SegmentationError(f"{source}: tensor checksum mismatch; the weights were modified or corrupted")
 
 
 def _check_checksum(path: Path) -> None:
@@ -107,7 +120,7 @@ class Segmenter:
         self.card = card
         self.height = int(card.get("input", {}).get("height", HEIGHT))
         self.width = int(card.get("input", {}).get("width", WIDTH))
-        self.model = model.to(self.device).eval()
+        self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
 

@@ -126,3 +126,26 @@ class RangeNet(nn.Module):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+@torch.no_grad()
+def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
+    """A conv with bias equal to conv followed by bn in eval mode."""
+    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+    fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
+                      conv.dilation, conv.groups, bias=True)
+    fused.weight.copy_(conv.weight * scale.view(-1, 1, 1, 1))
+    bias = conv.bias if conv.bias is not None else torch.zeros_like(bn.running_mean)
+    fused.bias.copy_((bias - bn.running_mean) * scale + bn.bias)
+    return fused
+
+
+def fold_batchnorm(model: RangeNet) -> RangeNet:
+    """Fold every BatchNorm into the conv before it (inference only; same outputs up to float rounding)."""
+    model.eval()
+    for m in model.modules():
+        if isinstance(m, CircConv) and isinstance(m.bn, nn.BatchNorm2d):
+            m.conv, m.bn = _fold(m.conv, m.bn), nn.Identity()
+        elif isinstance(m, Fuse) and isinstance(m.fuse[1], nn.BatchNorm2d):
+            m.fuse = nn.Sequential(_fold(m.fuse[0], m.fuse[1]), m.fuse[2])
+    return model

@@ -242,14 +242,25 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     return card
 
 
+def state_digest(state: dict) -> str:
+    """sha256 over the names, dtypes, shapes and bytes of a state dict's tensors (sorted by name)."""
+    h = hashlib.sha256()
+    for k in sorted(state):
+        v = state[k].detach().cpu().contiguous()
+        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
+        h.update(v.reshape(-1).view(torch.uint8).numpy().tobytes() if v.numel() else b"")
+    return h.hexdigest()
+
+
 def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
-    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors}; OUT/model_card.json = card + sha256."""
+    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
+    OUT/model_card.json = card + the file's sha256."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / WEIGHTS_NAME
     state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
     card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
-    torch.save({"model_card": card, "state_dict": state}, path)
+    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
     doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
                                "bytes": path.stat().st_size}}
     (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
