@@ -190,3 +190,24 @@ def test_lovasz_is_zero_for_a_perfect_prediction_and_grows_with_errors():
     worst = perfect.clone()
     worst[:2] = torch.tensor([0.0, 0.0, 1.0])
     assert 0 < lovasz_softmax(worse, labels).item() < lovasz_softmax(worst, labels).item()
+
+
+def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
+    from topometric_ros.segmentation.infer import segment_frame
+
+    f = frames[0]
+    labels, conf = segment_frame(f, SegmentationConfig(mode="labels"))
+    np.testing.assert_array_equal(labels, f.labels)
+    assert conf is None
+    assert segment_frame(f, SegmentationConfig(mode="none")) == (None, None)
+    _, path = _random_weights(tmp_path)
+    cfg = SegmentationConfig(weights=str(path))
+    seg = Segmenter.from_config(cfg)
+    labels, conf = segment_frame(f, cfg, seg)
+    np.testing.assert_array_equal(labels, seg.predict(f.points, f.ring, f.intensity)[0])
+    strict, _ = segment_frame(f, SegmentationConfig(weights=str(path), min_confidence=float(np.median(conf))), seg)
+    assert (strict == C.OTHER).sum() > (labels == C.OTHER).sum()
+    with pytest.raises(SegmentationError, match="no label field"):
+        segment_frame(type(f)(points=f.points, pose=f.pose, stamp=0.0), SegmentationConfig(mode="labels"))
+    with pytest.raises(SegmentationError, match="needs a Segmenter"):
+        segment_frame(f, cfg)

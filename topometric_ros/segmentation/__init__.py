@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import importlib
 
-_EXPORTS = {"Segmenter": "infer", "SegmentationError": "infer", "SHIPPED": "infer"}
+_EXPORTS = {"Segmenter": "infer", "SegmentationError": "infer", "SHIPPED": "infer", "segment_frame": "infer"}
 
 
 def __getattr__(name: str):

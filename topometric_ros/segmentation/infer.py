@@ -160,3 +160,26 @@ class Segmenter:
         x = torch.from_numpy(images).to(self.device, non_blocking=True)
         conf, labels = self.model(x).softmax(1).max(1)
         return labels.to(torch.uint8).cpu().numpy(), conf.float().cpu().numpy()
+
+
+def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = None
+                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(labels (N,) uint8, confidence (N,) float32 or None) of a window.Frame as ``cfg.mode`` says.
+
+    network: ``segmenter`` predicts (points below ``cfg.min_confidence`` become OTHER); labels: the frame's
+    own label field (e.g. simulator ground truth; confidence None); none: (None, None), every point static.
+    """
+    if cfg.mode == "none":
+        return None, None
+    if cfg.mode == "labels":
+        if frame.labels is None:
+            raise SegmentationError("segmentation mode 'labels' but the cloud has no label field")
+        return np.asarray(frame.labels, np.uint8), None
+    if cfg.mode != "network":
+        raise SegmentationError(f"unknown segmentation mode {cfg.mode!r}; use network, labels or none")
+    if segmenter is None:
+        raise SegmentationError("segmentation mode 'network' needs a Segmenter (Segmenter.from_config)")
+    labels, conf = segmenter.predict(frame.points, frame.ring, frame.intensity)
+    if cfg.min_confidence > 0:
+        labels = np.where(conf < cfg.min_confidence, np.uint8(C.OTHER), labels)
+    return labels, conf
