@@ -33,10 +33,8 @@ class Projection:
     height: int = HEIGHT
     width: int = WIDTH
 
-    @property
-    def flat(self) -> np.ndarray:
-        """(N,) flat pixel index of every point (row * width + col)."""
-        return self.row.astype(np.int64) * self.width + self.col
+    def __post_init__(self):
+        self.flat = self.row.astype(np.int64) * self.width + self.col  # (N,) flat pixel index of every point
 
     def unproject(self, image: np.ndarray) -> np.ndarray:
         """Per-point values read back from an (..., height, width) image: shape (..., N)."""
@@ -74,18 +72,21 @@ def project(points: np.ndarray, ring: np.ndarray | None = None, intensity: np.nd
             raise ProjectionError(f"ring id {int(ring.max())} does not fit a {height}-ring image")
         row = ring.astype(np.int32)
     az = np.arctan2(points[:, 1], points[:, 0])
-    col = np.rint(az * (width / (2 * np.pi))).astype(np.int64) % width
+    col = np.rint(az * np.float32(width / (2 * np.pi))).astype(np.int64)
+    col[col < 0] += width
+    col[col >= width] -= width
     proj = Projection(row=row, col=col, height=height, width=width)
-    image = np.zeros((len(CHANNELS), height * width), np.float32)
     flat = proj.flat
-    image[0, flat] = np.sqrt(np.einsum("ij,ij->i", points, points))
-    image[1:4, flat] = points.T
+    image = np.zeros((len(CHANNELS), height * width), np.float32)
+    image[0][flat] = np.sqrt(np.einsum("ij,ij->i", points, points))
+    for c in range(3):
+        image[1 + c][flat] = points[:, c]
     if intensity is not None:
         intensity = np.asarray(intensity, dtype=np.float32)
         if intensity.shape != (n,):
             raise ProjectionError(f"intensity must be ({n},), got {intensity.shape}")
-        image[4, flat] = intensity
-    image[5, flat] = 1.0
+        image[4][flat] = intensity
+    image[5][flat] = 1.0
     return image.reshape(len(CHANNELS), height, width), proj
 
 
