@@ -145,6 +145,50 @@ def _plot_plane_quality(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    import shlex
+
+    from .segmentation.data import expand_bags
+    from .segmentation.model import ModelSpec
+    from .segmentation.train import TrainConfig, train
+
+    cfg = TrainConfig(epochs=args.epochs, crops_per_epoch=args.crops, batch=args.batch, crop_width=args.crop_width,
+                      lr=args.lr, every=args.every, seed=args.seed, threads=args.threads)
+    spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")))
+    bags = expand_bags(args.bags)
+    val = expand_bags(args.val) if args.val else []
+    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
+    print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
+    card = train(bags, args.out, cfg, spec, val, args.cache, command)
+    val_m = card["metrics"].get("val", {})
+    if "val_miou" in val_m:
+        print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
+    return 0
+
+
+def cmd_eval_seg(args: argparse.Namespace) -> int:
+    from .config import SegmentationConfig
+    from .segmentation.data import expand_bags
+    from .segmentation.evaluate import evaluate_bags, format_table, write_report
+
+    bags = expand_bags(args.bags)
+    segmenter = None
+    if args.mode == "network":
+        from .segmentation.infer import Segmenter
+
+        segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
+                                                             threads=args.threads))
+    result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
+    metrics = write_report(result, args.out, args.title)
+    print(format_table(metrics["rows"]))
+    sp = metrics["speed"]
+    if sp.get("scans"):
+        print(f"speed: {sp['scans_per_s']} scans/s (median {sp['median_ms']} ms/scan over {sp['scans']} scans, "
+              f"{args.device}, {args.threads} thread(s), projection + network + back-projection)")
+    print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -166,6 +210,35 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--test", type=int, default=1, help="test trajectories per scene with --split")
     s.add_argument("--out", required=True, help="output bag directory (with --split: a parent directory)")
     s.set_defaults(func=cmd_simulate)
+
+    t = sub.add_parser("train", help="train the segmentation network on labelled bags (simulated train split)")
+    t.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/train)")
+    t.add_argument("--val", nargs="*", default=[], help="validation bags (logged per epoch, never used to pick weights)")
+    t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
+    t.add_argument("--epochs", type=int, default=12)
+    t.add_argument("--crops", type=int, default=768, help="random azimuth crops per epoch")
+    t.add_argument("--batch", type=int, default=12)
+    t.add_argument("--crop-width", type=int, default=480, help="azimuth columns per crop")
+    t.add_argument("--lr", type=float, default=4e-3)
+    t.add_argument("--every", type=int, default=3, help="use every n-th scan of each bag")
+    t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
+    e.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/test)")
+    e.add_argument("--weights", default="", help="weights file (default: the shipped ones)")
+    e.add_argument("--mode", default="network", choices=("network", "labels"),
+                   help="network, or labels (score the cloud's own label field: a sanity check)")
+    e.add_argument("--device", default="cpu", help="cpu or cuda")
+    e.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    e.add_argument("--every", type=int, default=1, help="use every n-th scan")
+    e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
+    e.add_argument("--title", default="", help="title of the confusion-matrix plot")
+    e.add_argument("--out", default="out/eval_seg")
+    e.set_defaults(func=cmd_eval_seg)
 
     d = sub.add_parser("demo", help="the main job on simulated data")
     d.add_argument("--out", default="out/demo")
@@ -201,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         return args.func(args)
     except (ValueError, FileNotFoundError) as e:
@@ -208,8 +282,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
+        from .segmentation.infer import SegmentationError
 
-        if isinstance(e, BagError):
+        if isinstance(e, (BagError, SegmentationError)):
             print(f"error: {e}", file=sys.stderr)
             return 2
         raise

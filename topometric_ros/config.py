@@ -32,6 +32,7 @@ class SegmentationConfig:
     weights: str = ""  # path to weights; "" = the shipped ones
     device: str = "cpu"  # cpu | cuda
     threads: int = 1  # torch CPU threads for inference
+    min_confidence: float = 0.0  # network points below this softmax probability become "other" (0 = keep all)
 
 
 @dataclass

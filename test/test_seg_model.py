@@ -1,0 +1,213 @@
+"""The network, the Segmenter and its weight loading (untrained nets; the shipped weights in test_seg_shipped)."""
+from __future__ import annotations
+
+import copy
+import os
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from topometric_ros import classes as C
+from topometric_ros.config import SegmentationConfig
+from topometric_ros.segmentation.infer import SegmentationError, Segmenter, load_weights
+from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
+from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, lovasz_softmax, model_card,
+                                               save_weights, state_digest)
+from topometric_ros.sim.frames import simulated_frames
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return simulated_frames("garage", 2, seed=5)[0]
+
+
+def _random_weights(path, seed=0):
+    torch.manual_seed(seed)
+    model = RangeNet(ModelSpec())
+    for m in model.modules():  # non-trivial running stats, so eval mode is not the identity normalisation
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 1.5)
+    card = model_card(model.spec, TrainConfig(), [], [], "test", [], 0, 0, 0.0)
+    return model.eval(), save_weights(model, card, path)
+
+
+def _save(path, card, state):
+    """A weights file with a valid digest of ``state`` (so only the shape/key checks can object)."""
+    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
+
+
+def test_circular_padding_makes_the_net_equivariant_to_azimuth_rolls():
+    torch.manual_seed(0)
+    model = RangeNet(ModelSpec()).eval()
+    x = torch.randn(1, 6, 32, 96)
+    step = 2 * model.spec.fold  # the net's azimuth stride
+    with torch.no_grad():
+        y = model(x)
+        for k in (1, 5):
+            torch.testing.assert_close(model(x.roll(k * step, -1)), y.roll(k * step, -1), atol=1e-4, rtol=1e-4)
+        model.set_circular(False)  # zero padding breaks the wrap-around
+        assert not torch.allclose(model(x.roll(step, -1)), y.roll(step, -1), atol=1e-3)
+
+
+def test_folding_batchnorm_keeps_the_outputs(tmp_path):
+    model, _ = _random_weights(tmp_path)
+    x = torch.randn(2, 6, 32, 64)
+    folded = fold_batchnorm(copy.deepcopy(model))
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    with torch.no_grad():
+        torch.testing.assert_close(folded(x), model(x), atol=1e-4, rtol=1e-4)
+
+
+def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames):
+    _, path = _random_weights(tmp_path)
+    seg = Segmenter.from_config(SegmentationConfig(weights=str(path)))
+    f = frames[0]
+    labels, conf = seg.predict(f.points, f.ring, f.intensity)
+    assert labels.shape == conf.shape == (len(f.points),)
+    assert labels.dtype == np.uint8 and conf.dtype == np.float32
+    assert labels.max() < C.NUM_CLASSES and (conf > 1 / C.NUM_CLASSES - 1e-6).all() and (conf <= 1).all()
+    batch = seg.predict_batch([(g.points, g.ring, g.intensity) for g in frames])
+    for g, (lab, cf) in zip(frames, batch):
+        one = seg.predict(g.points, g.ring, g.intensity)
+        np.testing.assert_array_equal(lab, one[0])
+        np.testing.assert_allclose(cf, one[1], atol=1e-5)
+    no_ring = seg.predict(f.points, None, f.intensity)  # rings from elevation: the same image
+    np.testing.assert_array_equal(no_ring[0], labels)
+
+
+def test_missing_weights_raise_segmentation_error(tmp_path):
+    with pytest.raises(SegmentationError, match="not found"):
+        Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "none.pt")))
+
+
+def test_garbage_bytes_raise_segmentation_error(tmp_path):
+    bad = tmp_path / "garbage.pt"
+    bad.write_bytes(os.urandom(4096))
+    with pytest.raises(SegmentationError, match="not a safe torch weights file"):
+        load_weights(bad)
+
+
+class _Exploit:
+    def __init__(self, target):
+        self.target = target
+
+    def __reduce__(self):
+        return (os.mkdir, (self.target,))
+
+
+def test_malicious_pickle_is_refused_without_running_code(tmp_path):
+    target = tmp_path / "pwned"
+    evil = tmp_path / "evil.pt"
+    torch.save({"model_card": {}, "state_dict": {"x": _Exploit(str(target))}}, evil)
+    with pytest.raises(SegmentationError, match="not a safe torch weights file"):
+        load_weights(evil)
+    raw = tmp_path / "raw.pt"
+    raw.write_bytes(pickle.dumps(_Exploit(str(target))))
+    with pytest.raises(SegmentationError):
+        load_weights(raw)
+    assert not target.exists()
+
+
+def test_wrong_shapes_and_keys_raise_segmentation_error(tmp_path, frames):
+    model, path = _random_weights(tmp_path / "ok")
+    card, state = load_weights(path)
+    key = "stem.conv.weight"
+    wrong = dict(state, **{key: torch.zeros(3, 3, 3, 3)})
+    _save(tmp_path / "shape.pt", card, wrong)
+    with pytest.raises(SegmentationError, match="stem.conv.weight"):
+        Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "shape.pt")))
+    missing = {k: v for k, v in state.items() if k != key}
+    _save(tmp_path / "missing.pt", card, missing)
+    with pytest.raises(SegmentationError, match="missing"):
+        Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "missing.pt")))
+    _save(tmp_path / "card.pt", {**card, "model": {**card["model"], "widths": [8, 8, 8]}}, state)
+    with pytest.raises(SegmentationError, match="needs"):
+        Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "card.pt")))
+    torch.save([1, 2, 3], tmp_path / "list.pt")
+    with pytest.raises(SegmentationError, match="expected"):
+        load_weights(tmp_path / "list.pt")
+
+
+def test_modified_weights_fail_the_checksums(tmp_path):
+    _, path = _random_weights(tmp_path)
+    card, state = load_weights(path)
+    state["head.bias"] = state["head.bias"] + 1  # a valid file, but not the one the card describes
+    _save(path, card, state)
+    with pytest.raises(SegmentationError, match="sha256"):  # model_card.json beside it names the file's hash
+        load_weights(path)
+    (tmp_path / "model_card.json").unlink()
+    load_weights(path)  # consistent digest, no card beside it: loads
+    doc = torch.load(path, weights_only=True)
+    doc["state_dict"]["head.bias"][0] += 1e-3  # tensors changed after the digest was taken
+    torch.save(doc, path)
+    with pytest.raises(SegmentationError, match="checksum mismatch"):
+        load_weights(path)
+    del doc["state_sha256"]
+    torch.save(doc, path)
+    with pytest.raises(SegmentationError, match="no state_sha256"):
+        load_weights(path)
+
+
+def test_bad_device_is_a_clear_error(tmp_path):
+    _, path = _random_weights(tmp_path)
+    with pytest.raises(SegmentationError, match="device"):
+        Segmenter.from_config(SegmentationConfig(weights=str(path), device="tpu"))
+
+
+def test_augment_keeps_labels_and_builds_consistent_channels():
+    g = torch.Generator().manual_seed(0)
+    rng = np.random.default_rng(0)
+    xyz = torch.from_numpy(rng.normal(0, 5, (4, 3, 32, 48)).astype(np.float32))
+    y = torch.from_numpy(rng.integers(0, 7, (4, 32, 48)))
+    y[:, :4] = 255  # rows without returns
+    xyz[:, :, :4] = 0
+    x = torch.cat([xyz, torch.full((4, 1, 32, 48), 100.0)], 1)
+    cfg = TrainConfig(max_dropout=0.0)
+    inp, y2 = augment(x, y.clone(), cfg, g)
+    counts = lambda t: np.bincount(t[t != 255].numpy().ravel(), minlength=7)  # noqa: E731
+    np.testing.assert_array_equal(counts(y2), counts(y))  # yaw / mirror / jitter move labels, never change them
+    valid = inp[:, 5] > 0
+    assert torch.equal(valid, y2 != 255)
+    torch.testing.assert_close(inp[:, 0], torch.linalg.vector_norm(inp[:, 1:4], dim=1))
+    assert inp[:, :5][~valid.unsqueeze(1).expand(-1, 5, -1, -1)].abs().max() == 0
+
+
+def test_class_weights_favour_rare_classes():
+    labels = np.array([C.WALL] * 900 + [C.CHAIR] * 100 + [255] * 50, np.uint8)
+    w = class_weights(labels)
+    assert w[C.CHAIR] > w[C.WALL] > 0 and w[C.FLOOR] == 0
+
+
+def test_lovasz_is_zero_for_a_perfect_prediction_and_grows_with_errors():
+    labels = torch.tensor([0, 1, 1, 2, 2, 2])
+    perfect = torch.nn.functional.one_hot(labels, 3).float()
+    assert lovasz_softmax(perfect, labels).item() == pytest.approx(0.0)
+    worse = perfect.clone()
+    worse[0] = torch.tensor([0.5, 0.5, 0.0])
+    worst = perfect.clone()
+    worst[:2] = torch.tensor([0.0, 0.0, 1.0])
+    assert 0 < lovasz_softmax(worse, labels).item() < lovasz_softmax(worst, labels).item()
+
+
+def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
+    from topometric_ros.segmentation.infer import segment_frame
+
+    f = frames[0]
+    labels, conf = segment_frame(f, SegmentationConfig(mode="labels"))
+    np.testing.assert_array_equal(labels, f.labels)
+    assert conf is None
+    assert segment_frame(f, SegmentationConfig(mode="none")) == (None, None)
+    _, path = _random_weights(tmp_path)
+    cfg = SegmentationConfig(weights=str(path))
+    seg = Segmenter.from_config(cfg)
+    labels, conf = segment_frame(f, cfg, seg)
+    np.testing.assert_array_equal(labels, seg.predict(f.points, f.ring, f.intensity)[0])
+    strict, _ = segment_frame(f, SegmentationConfig(weights=str(path), min_confidence=float(np.median(conf))), seg)
+    assert (strict == C.OTHER).sum() > (labels == C.OTHER).sum()
+    with pytest.raises(SegmentationError, match="no label field"):
+        segment_frame(type(f)(points=f.points, pose=f.pose, stamp=0.0), SegmentationConfig(mode="labels"))
+    with pytest.raises(SegmentationError, match="needs a Segmenter"):
+        segment_frame(f, cfg)

@@ -1,0 +1,267 @@
+"""Train the range-image network from labelled bags (``topometric train``).
+
+Scans are projected once into a cache (data.py). Each step takes random azimuth crops of random scans,
+augments them (yaw = azimuth roll, mirror, sensor height and tilt jitter, range noise, point dropout,
+intensity scale / absence) and minimises weighted cross entropy + Lovász-softmax. Crops are trained with
+zero azimuth padding (their ends do not meet); validation and inference use whole scans with circular
+padding. The last epoch's weights are saved (no selection on validation or test data) with a model card.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from .. import classes as C
+from .data import load_or_build_cache
+from .metrics import confusion, iou_per_class, miou
+from .model import ModelSpec, RangeNet, count_parameters
+from .projection import CHANNELS, HEIGHT, WIDTH
+
+WEIGHTS_NAME, CARD_NAME = "rangenet.pt", "model_card.json"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class TrainConfig:
+    """Training hyper-parameters (all recorded in the model card)."""
+
+    epochs: int = 12
+    crops_per_epoch: int = 768  # random azimuth crops per epoch
+    batch: int = 12
+    crop_width: int = 480  # columns per crop (multiple of 2 × fold)
+    lr: float = 4e-3  # AdamW peak learning rate, cosine decay after a short warm-up
+    weight_decay: float = 1e-4
+    lovasz: float = 1.0  # weight of the Lovász-softmax term
+    lovasz_pixels: int = 40000  # Lovász on this many random labelled pixels per batch (sorting is costly)
+    every: int = 3  # use every n-th scan of each bag
+    val_every: int = 4  # use every n-th scan of each validation bag
+    seed: int = 0
+    threads: int = 1  # torch CPU threads (more than the free cores makes OpenMP crawl on a shared machine)
+    height_jitter: float = 0.1  # m, uniform ± sensor height change
+    tilt_deg: float = 1.5  # deg, std of sensor roll / pitch jitter
+    range_noise: float = 0.01  # m, std of extra range noise
+    max_dropout: float = 0.05  # up to this fraction of points removed
+    no_intensity: float = 0.1  # probability a crop has no intensity (clouds without the field)
+
+
+def class_weights(labels: np.ndarray, num_classes: int = C.NUM_CLASSES, cap: float = 10.0) -> np.ndarray:
+    """(K,) 1/sqrt(frequency) of each class in ``labels`` (255 ignored), mean 1 over present classes, capped."""
+    counts = np.bincount(labels[labels < num_classes].ravel(), minlength=num_classes).astype(np.float64)
+    freq = counts / max(counts.sum(), 1)
+    w = np.where(freq > 0, 1.0 / np.sqrt(np.maximum(freq, 1e-12)), 0.0)
+    w /= w[freq > 0].mean()
+    return np.minimum(w, cap).astype(np.float32)
+
+
+def lovasz_softmax(probs: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Lovász-softmax loss (Berman et al. 2018) of probabilities (P, K) vs labels (P,), classes present only."""
+    losses = []
+    for c in range(probs.shape[1]):
+        fg = (labels == c).float()
+        if fg.sum() == 0:
+            continue
+        errors = (fg - probs[:, c]).abs()
+        errors_sorted, perm = torch.sort(errors, descending=True)
+        fg_sorted = fg[perm]
+        gts = fg_sorted.sum()
+        intersection = gts - fg_sorted.cumsum(0)
+        union = gts + (1 - fg_sorted).cumsum(0)
+        jaccard = 1.0 - intersection / union
+        jaccard = torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]])
+        losses.append(torch.dot(errors_sorted, jaccard))
+    return torch.stack(losses).mean() if losses else probs.sum() * 0
+
+
+def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, 6, H, W) input in projection.CHANNELS order from xyz (B, 3, H, W), intensity (B, 1, H, W), valid (B, H, W)."""
+    v = valid.unsqueeze(1).to(xyz.dtype)
+    xyz = xyz * v
+    rng = torch.linalg.vector_norm(xyz, dim=1, keepdim=True)
+    return torch.cat([rng, xyz, intensity * v, v], 1)
+
+
+def sample_crops(images: np.ndarray, labels: np.ndarray, n: int, width: int, rng: np.random.Generator):
+    """n random azimuth crops (wrapping around) of random scans: xyz+intensity (n, 4, H, width) float32, labels."""
+    idx = rng.integers(len(images), size=n)
+    start = rng.integers(images.shape[-1], size=n)
+    cols = (start[:, None] + np.arange(width)) % images.shape[-1]
+    x = np.stack([images[i][..., c] for i, c in zip(idx, cols)]).astype(np.float32)
+    y = np.stack([labels[i][..., c] for i, c in zip(idx, cols)])
+    return torch.from_numpy(x), torch.from_numpy(y.astype(np.int64))
+
+
+def augment(x: torch.Tensor, y: torch.Tensor, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Augment a batch of crops (see module docstring); returns the network input and labels (255 = ignore)."""
+    b = x.shape[0]
+    xyz, inten = x[:, :3], x[:, 3:4]
+    valid = y != 255
+
+    def uniform(lo, hi, *shape):
+        return lo + (hi - lo) * torch.rand(*shape, generator=g)
+
+    yaw = uniform(0, 2 * math.pi, b)
+    mirror = torch.rand(b, generator=g) < 0.5
+    roll, pitch = (torch.randn(2, b, generator=g) * math.radians(cfg.tilt_deg)).unbind(0)
+    rot = _rotation(yaw, roll, pitch)
+    rot[mirror] = rot[mirror] * torch.tensor([1.0, -1.0, 1.0]).view(1, 3)  # y -> -y, then the columns flip below
+    xyz = torch.einsum("bij,bjhw->bihw", rot, xyz)
+    xyz[:, 2] += uniform(-cfg.height_jitter, cfg.height_jitter, b).view(b, 1, 1)
+    r = torch.linalg.vector_norm(xyz, dim=1, keepdim=True).clamp_min(1e-3)
+    xyz = xyz * (1 + cfg.range_noise * torch.randn(r.shape, generator=g) / r)
+    inten = inten * uniform(0.8, 1.2, b).view(b, 1, 1, 1) * (torch.rand(b, generator=g) >= cfg.no_intensity).view(b, 1, 1, 1)
+    drop = torch.rand(valid.shape, generator=g) < uniform(0, cfg.max_dropout, b).view(b, 1, 1)
+    valid = valid & ~drop
+    y = torch.where(valid, y, torch.full_like(y, 255))
+    inp = network_input(xyz, inten, valid)
+    inp[mirror] = inp[mirror].flip(-1)
+    y[mirror] = y[mirror].flip(-1)
+    return inp, y
+
+
+def _rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) Rz(yaw) Ry(pitch) Rx(roll)."""
+    cy, sy, cp, sp, cr, sr = yaw.cos(), yaw.sin(), pitch.cos(), pitch.sin(), roll.cos(), roll.sin()
+    one, zero = torch.ones_like(yaw), torch.zeros_like(yaw)
+    rz = torch.stack([cy, -sy, zero, sy, cy, zero, zero, zero, one], 1).view(-1, 3, 3)
+    ry = torch.stack([cp, zero, sp, zero, one, zero, -sp, zero, cp], 1).view(-1, 3, 3)
+    rx = torch.stack([one, zero, zero, zero, cr, -sr, zero, sr, cr], 1).view(-1, 3, 3)
+    return rz @ ry @ rx
+
+
+@torch.inference_mode()
+def evaluate_cache(model: RangeNet, images: np.ndarray, labels: np.ndarray, batch: int = 4) -> np.ndarray:
+    """Confusion matrix of the model on whole cached scans (circular padding)."""
+    model.eval().set_circular(True)
+    conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+    for i in range(0, len(images), batch):
+        x = torch.from_numpy(images[i:i + batch].astype(np.float32))
+        y = labels[i:i + batch]
+        inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255))
+        pred = model(inp).argmax(1).numpy()
+        conf += confusion(y, pred)
+    return conf
+
+
+def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags: Sequence[str], command: str,
+               history: list[dict], n_scans: int, n_params: int, elapsed_s: float) -> dict:
+    """The JSON model card: classes, input spec, training data and settings, metrics."""
+    last = history[-1] if history else {}
+    return {
+        "name": "rangenet", "format_version": FORMAT_VERSION,
+        "classes": list(C.NAMES), "paper_classes": [C.NAMES[c] for c in C.PAPER_CLASSES],
+        "model": spec.as_dict(), "parameters": n_params,
+        "input": {"channels": list(CHANNELS), "height": HEIGHT, "width": WIDTH,
+                  "rows": "ring field (0 = lowest beam), else nearest VLP-32C beam elevation",
+                  "columns": "azimuth bins of 0.2 deg, column 0 at +x, counter-clockwise",
+                  "units": "range/x/y/z in m (sensor frame), intensity 0..255, valid 0/1"},
+        "training": {"command": command, "bags": [str(b) for b in bags], "val_bags": [str(b) for b in val_bags],
+                     "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
+                     "torch": str(torch.__version__), "history": history},
+        "metrics": {"val": {k: last[k] for k in ("val_miou", "val_iou") if k in last}},
+    }
+
+
+def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainConfig(), spec: ModelSpec = ModelSpec(),
+          val_bags: Sequence[str | Path] = (), cache_dir: str | Path = "data/cache", command: str = "",
+          progress: bool = True) -> dict:
+    """Train on labelled ``bags``; write OUT/rangenet.pt (state dict + card) and OUT/model_card.json.
+
+    Returns the model card. Validation bags only log metrics per epoch; they never select weights.
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    if cfg.crop_width % (2 * spec.fold):
+        raise ValueError(f"crop_width {cfg.crop_width} must be a multiple of {2 * spec.fold}")
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    g = torch.Generator().manual_seed(cfg.seed)
+    data = load_or_build_cache(bags, cache_dir, cfg.every, progress=progress)
+    val = load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress) if val_bags else None
+    images, labels = data["images"], data["labels"]
+    weights = torch.from_numpy(class_weights(labels))
+    model = RangeNet(spec)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
+    total = steps_per_epoch * cfg.epochs
+    warmup = min(100, total // 10)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * (s - warmup) / max(1, total - warmup))))
+    history = []
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for epoch in range(cfg.epochs):
+        model.train().set_circular(False)
+        conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+        losses = []
+        te = time.perf_counter()
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step", disable=not progress,
+                   leave=False)
+        for _ in bar:
+            x, y = sample_crops(images, labels, cfg.batch, cfg.crop_width, rng)
+            inp, y = augment(x, y, cfg, g)
+            logits = model(inp)
+            loss = F.cross_entropy(logits, y, weight=weights, ignore_index=255)
+            if cfg.lovasz > 0:
+                yf = y.reshape(-1)
+                keep = torch.nonzero(yf != 255).squeeze(1)
+                keep = keep[torch.randperm(len(keep), generator=g)[:cfg.lovasz_pixels]]
+                probs = logits.softmax(1).permute(0, 2, 3, 1).reshape(-1, logits.shape[1])[keep]
+                loss = loss + cfg.lovasz * lovasz_softmax(probs, yf[keep])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            losses.append(loss.item())
+            conf += confusion(y.numpy(), logits.detach().argmax(1).numpy())
+            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
+        entry = {"epoch": epoch + 1, "loss": round(float(np.mean(losses)), 4), "train_miou": round(miou(conf), 4),
+                 "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
+        if val is not None:
+            vconf = evaluate_cache(model, val["images"], val["labels"])
+            entry["val_miou"] = round(miou(vconf), 4)
+            entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
+        history.append(entry)
+        val_text = f" val mIoU {100 * entry['val_miou']:.2f}" if "val_miou" in entry else ""
+        tqdm.write(f"epoch {epoch + 1:2d}: loss {entry['loss']:.4f} train mIoU {100 * entry['train_miou']:.2f}"
+                   f"{val_text} ({entry['seconds']:.0f} s)")
+        (out / "train_log.json").write_text(json.dumps(history, indent=2))
+    card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
+                      len(images), count_parameters(model), time.perf_counter() - t0)
+    save_weights(model, card, out)
+    return card
+
+
+def state_digest(state: dict) -> str:
+    """sha256 over the names, dtypes, shapes and bytes of a state dict's tensors (sorted by name)."""
+    h = hashlib.sha256()
+    for k in sorted(state):
+        v = state[k].detach().cpu().contiguous()
+        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
+        h.update(v.reshape(-1).view(torch.uint8).numpy().tobytes() if v.numel() else b"")
+    return h.hexdigest()
+
+
+def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
+    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
+    OUT/model_card.json = card + the file's sha256."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / WEIGHTS_NAME
+    state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
+    card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
+    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
+    doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+                               "bytes": path.stat().st_size}}
+    (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
+    return path
