@@ -150,7 +150,8 @@ class Monitor:
         self._pending: deque[_Scan] = deque()
         self._last_scan_stamp: float | None = None
         self._odom_child = ""
-        self._sensor_frame = ""
+        self.sensor_frame = ""  # frame_id of the clouds (the sensor frame)
+        self.map_frame = ""  # frame_id of the odometry (the frame poses and planes live in)
         self._index = 0
         self._queue: deque = deque()
         self._cond = threading.Condition(self._lock)
@@ -199,8 +200,8 @@ class Monitor:
             self._error("dropped_bad_scan", f"malformed cloud: {e}")
             return False
         frame_id = str(getattr(msg.header, "frame_id", ""))
-        if frame_id and frame_id != self._sensor_frame:
-            self._sensor_frame = frame_id
+        if frame_id and frame_id != self.sensor_frame:
+            self.sensor_frame = frame_id
             self._resolve_extrinsic()
         pts, finite = xyz(fields)
         per_point = {}
@@ -221,6 +222,7 @@ class Monitor:
             self.count("poses_in")
             self._error("bad_poses", f"bad odometry: {e}")
             return False
+        self.map_frame = str(getattr(msg.header, "frame_id", "")) or self.map_frame
         child = str(getattr(msg, "child_frame_id", ""))
         if child and child != self._odom_child:
             self._odom_child = child
@@ -233,8 +235,8 @@ class Monitor:
         self._resolve_extrinsic()
 
     def _resolve_extrinsic(self) -> None:
-        if self._odom_child and self._sensor_frame:
-            pose = self.static_tf.lookup(self._odom_child, self._sensor_frame)
+        if self._odom_child and self.sensor_frame:
+            pose = self.static_tf.lookup(self._odom_child, self.sensor_frame)
             if pose is not None:
                 self.extrinsic, self.extrinsic_source = pose, "tf_static"
 

@@ -144,7 +144,7 @@ class _Recorder:
         rec.update({f"ms_{k.removesuffix('_ms')}": round(float(v), 3) for k, v in result.timings.items()})
         counters = m.counters
         status = diagnostic_status(self.types, result.level, result.message, window_values(result, counters),
-                                   hardware_id=self.hardware_id or m._sensor_frame)
+                                   hardware_id=self.hardware_id or m.sensor_frame)
         with self.lock:
             self.records.append(rec)
             self.poses.append([(s.stamp, s.pose) for s in scans])
@@ -203,7 +203,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
             if monitor.last_scan_received is not None:
                 stale = monitor.stale(t)
                 if stale and not stale_reported:
-                    rec.stale(t, stale[1], opt.hardware_id or monitor._sensor_frame)
+                    rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
                 stale_reported = bool(stale)
             if topic == opt.points_topic:
                 monitor.add_cloud(msg, received=t)
@@ -234,6 +234,32 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     summary = _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed)
     write_reports(out, records, summary, truth=_truth(bag_path), plot=opt.plot)
     return ReplayResult(out, records, summary)
+
+
+#: Keys of config/topometric.yaml that belong to the ROS node, not to Config (ignored by load_monitor_config).
+NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
+                   "publish_markers", "diagnostics_period_s", "use_sim_time")
+
+
+def load_monitor_config(path=None, overrides=None) -> Config:
+    """load_config for the node's parameter file too: node-only keys (NODE_PARAMETERS) are skipped,
+    any other unknown key is still an error."""
+    import yaml
+
+    from .config import _unwrap_ros, load_config
+
+    if path is None:
+        return load_config(None, overrides)
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    doc = _unwrap_ros(yaml.safe_load(p.read_text()) or {})
+    if not isinstance(doc, dict):
+        raise ValueError(f"{p}: expected a mapping at the top level")
+    from .config import apply
+
+    cfg = load_config(None, {k: v for k, v in doc.items() if k not in NODE_PARAMETERS})
+    return apply(cfg, overrides) if overrides else cfg
 
 
 def _segmenter(config: Config):
