@@ -1,24 +1,27 @@
 """health.py: robust baseline, sigma and absolute alarms, STALE, and the diagnostics messages."""
+import copy
+
 import numpy as np
 import pytest
 
 from topometric_ros import bag
 from topometric_ros.config import HealthConfig
-from topometric_ros.health import (STATUS_NAME, Health, diagnostic_array, diagnostic_status, window_values)
+from topometric_ros.health import (STATUS_NAME, Health, diagnostic_array, diagnostic_status, from_scale,
+                                   window_values)
 from topometric_ros.pipeline import WindowResult
 
 
 def result(pne=1.0, cpv=0.01, n_planes=20, t=0.0):
     return WindowResult([t, t + 0.8], pne=pne, cpv=cpv, n_planes=n_planes, n_groups=5,
-                        timings={"latency_ms": 12.5})
+                        timings={"latency": 12.5})
 
 
 def learned(cfg=None, rng=None, n=10):
-    """A Health with a baseline from n quiet windows (PNE ~ 1 ± 0.02, CPV ~ 0.01 ± 0.0005)."""
+    """A Health with a baseline from n windows (PNE ~ 1 ± 0.5 nats, CPV ~ 0.01 m² × e^(±0.6))."""
     rng = rng or np.random.default_rng(0)
     h = Health(cfg or HealthConfig(baseline_windows=n))
     for _ in range(n):
-        r = result(1.0 + 0.02 * rng.standard_normal(), 0.01 + 0.0005 * rng.standard_normal())
+        r = result(1.0 + 0.5 * rng.standard_normal(), 0.01 * np.exp(0.6 * rng.standard_normal()))
         h.assess(r)
     return h
 
@@ -29,7 +32,7 @@ def test_learning_then_ok():
     h.assess(r)
     assert r.level == "OK" and "learning baseline (1/3" in r.message
     h = learned()
-    r = result(1.01, 0.0101)
+    r = result(1.1, 0.011)
     assert h.assess(r).level == "OK"
     assert r.message.startswith("consistent")
 
@@ -47,10 +50,11 @@ def test_rotation_drift_raises_pne_alarm_with_sigma_reason():
 
 def test_translation_drift_raises_cpv_alarm():
     h = learned()
-    med, sigma = h.baseline("cpv")
-    r = result(cpv=med + 4.5 * sigma)
-    h.assess(r)
+    med, sigma = h.baseline("cpv")  # on the ln scale
+    r = result(cpv=float(np.exp(med + 4.5 * sigma)))
+    a = h.assess(r)
     assert r.level == "WARN" and "translation drift: CPV 4.5σ" in r.message
+    assert a.warn_at["cpv"] == pytest.approx(from_scale("cpv", med + 4 * sigma))
 
 
 def test_alarm_level_is_monotonic_in_the_metric():
@@ -58,8 +62,17 @@ def test_alarm_level_is_monotonic_in_the_metric():
     med, sigma = h.baseline("pne")
     levels = []
     for k in np.linspace(0, 12, 25):
-        levels.append({"OK": 0, "WARN": 1, "ERROR": 2}[h.assess(result(pne=med + k * sigma)).level])
+        fresh = copy.deepcopy(h)
+        levels.append({"OK": 0, "WARN": 1, "ERROR": 2}[fresh.assess(result(pne=med + k * sigma)).level])
     assert levels == sorted(levels) and levels[0] == 0 and levels[-1] == 2
+
+
+def test_a_ramp_does_not_creep_into_the_baseline():
+    """Drift that builds up over tens of windows is still caught: only calm windows (z < warn/2) teach."""
+    h = learned()
+    med, sigma = h.baseline("pne")
+    levels = [h.assess(result(pne=med + 0.5 * k * sigma)).level for k in range(40)]  # up to 20σ in 40 windows
+    assert levels[-1] == "ERROR" and h.baseline("pne")[0] < med + 2 * sigma
 
 
 def test_alarms_do_not_teach_the_baseline():
@@ -71,18 +84,30 @@ def test_alarms_do_not_teach_the_baseline():
     assert h.assess(result(pne=before[0] + 20 * before[1])).level == "ERROR"  # drift never becomes normal
 
 
-def test_quiet_sites_get_a_relative_floor():
+def test_quiet_sites_get_a_floor_on_the_spread():
     """A perfectly constant baseline (MAD 0) must not make every tiny wobble an alarm."""
-    h = Health(HealthConfig(baseline_windows=5, rel_floor=0.05))
+    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3))
     for _ in range(5):
-        h.assess(result(1.0, 0.01))
-    assert h.baseline("pne") == (1.0, pytest.approx(0.05))
-    assert h.assess(result(1.1, 0.0102)).level == "OK"
-    assert h.assess(result(1.25, 0.01)).level == "WARN"
+        h.assess(result(-9.0, 1e-5))
+    assert h.baseline("pne") == (-9.0, pytest.approx(0.2))
+    assert h.baseline("cpv") == (pytest.approx(np.log(1e-5)), pytest.approx(0.3))
+    assert h.assess(result(-8.5, 1.5e-5)).level == "OK"  # 2.5σ, ln 1.5 = 0.4 -> 1.4σ
+    assert h.assess(result(-8.1, 1e-5)).level == "WARN"  # 4.5σ
+
+
+def test_cpv_is_scale_free():
+    """The same relative rise of CPV alarms the same, whatever the site's CPV level (log scale)."""
+    levels = []
+    for scale in (1e-6, 1e-3, 1.0):
+        h = Health(HealthConfig(baseline_windows=10))
+        for r in [result(1.0, 0.01 * scale * f) for f in (1, 1.2, 0.8, 1.1, 0.9)] * 2:
+            h.assess(r)
+        levels.append([h.assess(result(1.0, 0.01 * scale * f)).level for f in (1.5, 5, 100)])
+    assert levels[0] == levels[1] == levels[2] and levels[0][-1] != "OK"
 
 
 def test_absolute_limits_apply_from_the_first_window():
-    h = Health(HealthConfig(pne_warn=2.0, pne_error=3.0, cpv_error=0.05))
+    h = Health(HealthConfig(pne_warn=2.0, pne_error=3.0, cpv_error=0.05))  # pne_warn 0 would mean off
     r = result(pne=2.5)
     h.assess(r)
     assert r.level == "WARN" and "above limit 2" in r.message

@@ -11,9 +11,8 @@ import pytest
 from topometric_ros import bag, geometry
 from topometric_ros.cloud import make_cloud, rosbags_types
 from topometric_ros.config import load_config
-from topometric_ros.monitor import Monitor, StaticTransforms, voxel_downsample
+from topometric_ros.monitor import Monitor, StaticTransforms
 from topometric_ros.pipeline import ProcessedScan, WindowResult
-from topometric_ros.window import Frame
 
 SENSOR_HEIGHT = 1.0
 
@@ -146,16 +145,6 @@ def test_backwards_stamps_reset_the_window_cleanly():
     assert len(out) == 3
     assert all(np.all(np.diff(r.stamps) > 0) for r in out)  # no window mixes the two time lines
     assert all(r.cpv < 1e-6 for r in out)
-
-
-def test_voxel_downsample_keeps_one_point_per_voxel_and_aligned_fields():
-    pts = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [1.1, 0.1, 0.1], [0.15, 0.3, 0.1]], np.float32)
-    f = Frame(pts, np.eye(4), 0.0, labels=np.array([1, 2, 3, 4], np.uint8))
-    d = voxel_downsample(f, 0.5)
-    assert len(d) == 2
-    np.testing.assert_array_equal(d.labels, [1, 3])
-    np.testing.assert_array_equal(d.points, pts[[0, 2]])
-    assert voxel_downsample(f, 0.0) is f
 
 
 def test_bad_input_is_counted_and_survived():

@@ -2,9 +2,12 @@
 
 No per-site tuning: each metric (PNE reacts to rotation drift, CPV to translation drift) is compared
 with a robust baseline learned from this run's first ``baseline_windows`` windows (median and MAD, then
-rolling over the last ``baseline_history`` OK windows, so a drift episode never teaches the baseline).
-The robust z = (value − median) / max(1.4826·MAD, rel_floor·median) raises WARN at ``warn_sigma`` and
-ERROR at ``error_sigma``. Absolute limits (config, 0 = off) apply from the first window.
+rolling over the last ``baseline_history`` calm windows (OK, z below warn_sigma / 2), so neither a drift
+episode nor a slow ramp teaches the baseline).
+Both are compared on a log scale: PNE is already one (an entropy, ½ ln det Σ + c), CPV (a variance, m²)
+through ln CPV, so the spread floors (``pne_min_sigma``, ``cpv_min_sigma``) are unit-free and site-free.
+The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_sigma`` and ERROR at
+``error_sigma``. Absolute limits (config, in metric units, 0 = off) apply from the first window.
 
 Also here: the diagnostics message builders shared by node.py and replay.py. They take the message
 classes as input (rosbags or rclpy), so this module imports no ROS.
@@ -25,6 +28,17 @@ RANK = {name: i for i, name in enumerate(LEVELS)}
 METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation drift", "m²")}
 STATUS_NAME = "topometric: map consistency"
 MAD_TO_SIGMA = 1.4826
+CPV_TINY = 1e-12  # m², CPV below this is taken as this on the log scale
+
+
+def to_scale(metric: str, value: float) -> float:
+    """The scale a metric is compared on: PNE as is (nats), CPV as ln CPV."""
+    return float(np.log(max(value, CPV_TINY))) if metric == "cpv" else float(value)
+
+
+def from_scale(metric: str, x: float) -> float:
+    """Inverse of :func:`to_scale` (back to metric units)."""
+    return float(np.exp(x)) if metric == "cpv" else float(x)
 
 
 @dataclass
@@ -51,14 +65,15 @@ class Health:
         """Time jumped back: the baseline stays (same robot, same site); nothing else to forget."""
 
     def baseline(self, metric: str) -> tuple[float, float] | None:
-        """(median, robust sigma) of a metric once ``baseline_windows`` windows are in, else None."""
+        """(median, robust sigma) of a metric ON ITS COMPARISON SCALE (to_scale) once ``baseline_windows``
+        windows are in, else None."""
         h = self._history[metric]
         if len(h) < max(1, self.config.baseline_windows):
             return None
         values = np.asarray(h)
         med = float(np.median(values))
         mad = float(np.median(np.abs(values - med)))
-        return med, max(MAD_TO_SIGMA * mad, self.config.rel_floor * abs(med), 1e-12)
+        return med, max(MAD_TO_SIGMA * mad, getattr(self.config, f"{metric}_min_sigma"), 1e-12)
 
     def assess(self, result: Any) -> Assessment:
         """Level and reason for a WindowResult (its ``level``/``message`` are set too)."""
@@ -73,16 +88,16 @@ class Health:
                 continue
             base = self.baseline(metric)
             lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
-            warn_at[metric], error_at[metric] = _limits(base, c, lim_warn, lim_err)
-            z[metric] = (value - base[0]) / base[1] if base else float("nan")
+            warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
+            z[metric] = (to_scale(metric, value) - base[0]) / base[1] if base else float("nan")
             learning |= base is None
-            if lim_err > 0 and value >= lim_err:
+            if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
             elif base and z[metric] >= c.error_sigma:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
-            elif lim_warn > 0 and value >= lim_warn:
+            elif lim_warn != 0 and value >= lim_warn:
                 level = _worse(level, "WARN")
                 reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
             elif base and z[metric] >= c.warn_sigma:
@@ -91,11 +106,12 @@ class Health:
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
             reasons.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
-        if learning or level == "OK":  # a window in alarm never teaches the baseline
+        calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
+        if learning or (level == "OK" and calm):  # only clearly normal windows teach the baseline (no creep)
             for metric in METRICS:
                 value = float(getattr(result, metric))
                 if np.isfinite(value):
-                    self._history[metric].append(value)
+                    self._history[metric].append(to_scale(metric, value))
         if not reasons:
             if learning:
                 n = min(len(h) for h in self._history.values())
@@ -123,10 +139,12 @@ def _worse(a: str, b: str) -> str:
     return a if RANK[a] >= RANK[b] else b
 
 
-def _limits(base, c: HealthConfig, lim_warn: float, lim_err: float) -> tuple[float, float]:
-    """Metric values where WARN and ERROR start (the lower of sigma and absolute limits), nan if none."""
-    warn = [v for v in (base[0] + c.warn_sigma * base[1] if base else None, lim_warn or None) if v is not None]
-    err = [v for v in (base[0] + c.error_sigma * base[1] if base else None, lim_err or None) if v is not None]
+def _limits(metric: str, base, c: HealthConfig, lim_warn: float, lim_err: float) -> tuple[float, float]:
+    """Metric values (metric units) where WARN and ERROR start (the lower of sigma and absolute limits)."""
+    sig_w = from_scale(metric, base[0] + c.warn_sigma * base[1]) if base else None
+    sig_e = from_scale(metric, base[0] + c.error_sigma * base[1]) if base else None
+    warn = [v for v in (sig_w, lim_warn or None) if v is not None]
+    err = [v for v in (sig_e, lim_err or None) if v is not None]
     return (min(warn) if warn else float("nan")), (min(err) if err else float("nan"))
 
 
@@ -147,7 +165,7 @@ def window_values(result: Any, counters: Mapping[str, int] | None = None,
     values.update(n_planes=result.n_planes, n_groups=result.n_groups,
                   window_start=result.stamps[0] if result.stamps else float("nan"),
                   window_end=result.stamps[-1] if result.stamps else float("nan"),
-                  latency_ms=result.timings.get("latency_ms", float("nan")))
+                  latency_ms=result.timings.get("latency", float("nan")))
     counters = dict(counters or {})
     values["dropped_windows"] = counters.pop("dropped_windows", 0)
     values.update(extra or {})

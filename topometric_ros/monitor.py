@@ -4,7 +4,7 @@ Clouds and poses arrive separately and out of step. A scan waits (``pending``) u
 its stamp + ``window.pose_wait_s`` has arrived, then gets the odometry pose interpolated at its stamp,
 times the extrinsic (odometry child frame -> sensor frame); a scan with no odometry within
 ``window.max_pose_gap_s`` (or still waiting after ``window.pose_timeout_s`` of scan time) is dropped and
-counted. Each resolved scan is processed ONCE (voxel downsample, ``scan_fn`` = segmentation + planes) and
+counted. Each resolved scan is processed ONCE (``scan_fn``: voxel downsample, segmentation, planes) and
 pushed to the sliding window; a window is scored (``window_fn``) and assessed (health.py) when its last
 scan is processed.
 
@@ -57,20 +57,6 @@ def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
     if v.shape != (7,) or not np.all(np.isfinite(v)):
         raise ValueError(f"extrinsic must be 7 finite numbers [x y z qx qy qz qw], got {list(values)!r}")
     return geometry.pose_from_quat(v[3:], v[:3])
-
-
-def voxel_downsample(frame: Frame, size: float) -> Frame:
-    """Keep the first point of each ``size``-m voxel (sensor frame); per-point fields stay aligned."""
-    if size <= 0 or len(frame) == 0:
-        return frame
-    k = np.floor(frame.points / size).astype(np.int64)
-    k -= k.min(axis=0)
-    key = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-    _, first = np.unique(key, return_index=True)
-    first.sort()
-    pick = lambda a: None if a is None else a[first]  # noqa: E731
-    return Frame(frame.points[first], frame.pose, frame.stamp, pick(frame.labels), pick(frame.ring),
-                 pick(frame.intensity))
 
 
 def _valid_pose(pose: np.ndarray) -> bool:
@@ -367,12 +353,11 @@ class Monitor:
     def _process(self, frame: Frame, index: int, arrived: float) -> None:
         t0 = time.perf_counter()
         try:
-            frame = voxel_downsample(frame, self.config.window.voxel_size)
             scan = self.scan_fn(frame, self.config, self.segmenter, index)
         except Exception as e:  # noqa: BLE001 - a bad scan must not stop the monitor
             self._error("scan_errors", f"scan {frame.stamp:.3f}: {type(e).__name__}: {e}")
             return
-        scan.timings.setdefault("scan_ms", 1000 * (time.perf_counter() - t0))
+        scan.timings["monitor"] = 1000 * (time.perf_counter() - t0)
         self.count("scans_processed")
         discarded = self.window.discarded
         scans = self.window.push(scan, frame.stamp)
@@ -389,9 +374,10 @@ class Monitor:
             self._error("window_errors", f"window at {scans[-1].stamp:.3f}: {type(e).__name__}: {e}")
             return
         now = time.perf_counter()
-        result.timings.setdefault("window_ms", 1000 * (now - t0))
-        result.timings["scans_ms"] = float(sum(s.timings.get("scan_ms", 0.0) for s in scans))
-        result.timings["latency_ms"] = 1000 * (now - arrived)
+        result.timings["window"] = 1000 * (now - t0)  # ms, scoring this window
+        for key in sorted({k for s in scans for k in s.timings}):  # ms, per-scan steps summed over the window
+            result.timings[f"scans_{key}"] = float(sum(s.timings.get(key, 0.0) for s in scans))
+        result.timings["latency"] = 1000 * (now - arrived)  # ms, last scan's arrival -> window result
         self.health.assess(result)
         self.count("windows")
         self.results.append(result)

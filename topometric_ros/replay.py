@@ -141,7 +141,7 @@ class _Recorder:
             rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
             rec[f"{metric}_warn_at"] = a.warn_at.get(metric, float("nan")) if a else float("nan")
             rec[f"{metric}_error_at"] = a.error_at.get(metric, float("nan")) if a else float("nan")
-        rec.update({f"ms_{k.removesuffix('_ms')}": round(float(v), 3) for k, v in result.timings.items()})
+        rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})
         counters = m.counters
         status = diagnostic_status(self.types, result.level, result.message, window_values(result, counters),
                                    hardware_id=self.hardware_id or m.sensor_frame)
