@@ -113,6 +113,40 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 1 if res.summary["error"] else 0
 
 
+def _floats(text: str) -> tuple:
+    return tuple(float(x) for x in text.split(",") if x.strip())
+
+
+def _ints(text: str) -> tuple:
+    return tuple(int(x) for x in text.split(",") if x.strip())
+
+
+def _words(text: str) -> tuple:
+    return tuple(x.strip() for x in text.split(",") if x.strip())
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .evaluate import ExperimentSpec, run
+
+    spec = ExperimentSpec.quick() if args.quick else ExperimentSpec()
+    given = {"scenes": args.scenes and tuple(args.scenes), "windows": args.win, "noises": args.noise,
+             "scales": args.scales, "labels": args.labels, "trajectories": args.trajectories, "frames": args.frames,
+             "baseline_windows": args.baseline_windows}
+    spec = replace(spec, **{k: v for k, v in given.items() if v is not None})
+    if spec.correlation_window not in spec.windows:
+        spec = replace(spec, correlation_window=spec.windows[0])
+    bad = [n for n in spec.noises if n not in ("r", "t", "rt")] + [x for x in spec.labels if x not in ("network", "gt")]
+    if bad:
+        print(f"error: unknown noise mode or label source: {', '.join(bad)}", file=sys.stderr)
+        return 2
+    paths = run(spec, args.out, workers=args.workers)
+    print(Path(paths["report"]).read_text())
+    print(f"wrote {args.out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -163,6 +197,22 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--frames", type=int, default=150)
     _add_monitor_args(d, "labels")
     d.set_defaults(func=cmd_demo)
+
+    e = sub.add_parser("evaluate", help="the paper's noise experiment: every metric against RPE, correlations, timing")
+    e.add_argument("--scenes", type=_scenes, default=None, help="scenes (default floor2,garage)")
+    e.add_argument("--win", type=_ints, default=None, help="window sizes (default 5,10,15)")
+    e.add_argument("--noise", type=_words, default=None, help="noise modes among r,t,rt (default all)")
+    e.add_argument("--scales", type=_floats, default=None, help="noise scales (default 1,1.5,2)")
+    e.add_argument("--labels", type=_words, default=None,
+                   help="label sources: network (shipped segmentation) and/or gt (default network,gt)")
+    e.add_argument("--trajectories", type=int, default=None, help="trajectories per scene (default 2)")
+    e.add_argument("--frames", type=int, default=None, help="scans per trajectory (default 300)")
+    e.add_argument("--baseline-windows", type=int, default=None,
+                   help="windows per trajectory and setting that also get MME/MPV/MOM (default 8)")
+    e.add_argument("--workers", type=int, default=2, help="processes (default 2)")
+    e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
+    e.add_argument("--out", default="results", help="output directory (default results/); finished settings are reused")
+    e.set_defaults(func=cmd_evaluate)
     return p
 
 

@@ -51,6 +51,10 @@ class MetricsConfig:
     """PNE, CPV and the MME/MPV/MOM baselines (metrics/)."""
 
     baselines: bool = False  # also compute MME, MPV, MOM (slower)
+    pne_cluster_deg: float = 15.0  # deg, half-angle of a PNE normal cluster around its heaviest normal
+    pne_floor_deg: float = 0.1  # deg, floor on the PNE tangent spread (a perfect cluster stays finite)
+    cpv_angle_deg: float = 10.0  # deg, largest angle between normals of co-planar planes
+    cpv_epsilon: float = 0.3  # m, largest |D2 - D1| of co-planar planes (paper Eq. 10)
     radius: float = 1.0  # m, neighbourhood radius of MME/MPV/MOM
     min_neighbours: int = 5  # a point counts when it has more than this many neighbours
     exact_baselines: bool = False  # exact MME/MPV (every point) instead of the fast approximation

@@ -5,14 +5,23 @@ frame, the sensor frame of its first scan (T_rel,i = T_1⁻¹ T_i), as map-metri
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import astuple, dataclass, field
 from typing import Sequence
 
 import numpy as np
 
+from . import classes as C
+from . import geometry, planes as planes_mod
 from .config import Config
+from .metrics import cpv as cpv_mod
+from .metrics import pne as pne_mod
 from .planes import Plane
 from .window import Frame
+
+#: The class every point gets in segmentation mode "none": one static class, so plane detection runs once
+#: over the whole scan and CPV joins planes regardless of what they really are.
+NONE_MODE_CLASS = C.WALL
 
 
 @dataclass
@@ -36,6 +45,9 @@ class ProcessedScan:
 class WindowResult:
     """Scores of one window. pne (nats), cpv (m²); mme, mpv, mom when baselines are on (else None).
 
+    n_planes: planes in the window; n_groups: CPV co-plane groups; n_clusters: PNE normal clusters.
+    pne / cpv are NaN when the window has no normal cluster / co-plane group. timings: ms per metric.
+
     level / message are filled by health.py (OK, WARN, ERROR, STALE)."""
 
     stamps: list[float]
@@ -43,6 +55,7 @@ class WindowResult:
     cpv: float
     n_planes: int
     n_groups: int
+    n_clusters: int = 0
     mme: float | None = None
     mpv: float | None = None
     mom: float | None = None
@@ -51,17 +64,189 @@ class WindowResult:
     message: str = ""
 
 
+class _Timer:
+    """Collects wall times in ms into a dict: ``with timer("step"): ...``."""
+
+    def __init__(self, into: dict[str, float]):
+        self.into = into
+
+    def __call__(self, name: str):
+        self.name = name
+        return self
+
+    def __enter__(self):
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc):
+        self.into[self.name] = 1000.0 * (time.perf_counter() - self.start)
+
+
+_SEGMENTERS: dict[tuple, object] = {}
+
+
+def default_segmenter(seg_config):
+    """The shipped network for ``config.segmentation`` (loaded once per distinct setting)."""
+    key = astuple(seg_config)
+    if key not in _SEGMENTERS:
+        try:
+            from .segmentation.infer import Segmenter
+        except ImportError as exc:
+            raise RuntimeError("segmentation mode 'network' needs topometric_ros.segmentation.infer.Segmenter, "
+                               f"which is not available ({exc}); use segmentation.mode 'labels' or 'none'") from exc
+        _SEGMENTERS[key] = Segmenter.from_config(seg_config)
+    return _SEGMENTERS[key]
+
+
+def voxel_indices(points: np.ndarray, size: float) -> np.ndarray:
+    """Sorted indices of one point (the first) per occupied voxel of edge ``size`` (m)."""
+    keys = np.floor(points / size).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def scan_labels(frame: Frame, points: np.ndarray, ring, intensity, config: Config, segmenter=None) -> np.ndarray:
+    """(N,) uint8 class per point by ``config.segmentation.mode``: labels | none | network."""
+    mode = config.segmentation.mode
+    if mode == "labels":
+        if frame.labels is None:
+            raise ValueError("segmentation mode 'labels' needs a cloud with a label field; this scan has none")
+        return frame.labels
+    if mode == "none":
+        return np.full(len(points), NONE_MODE_CLASS, np.uint8)
+    if mode == "network":
+        segmenter = segmenter if segmenter is not None else default_segmenter(config.segmentation)
+        labels, _ = segmenter.predict(points, ring, intensity)
+        return np.asarray(labels, np.uint8)
+    raise ValueError(f"unknown segmentation mode {mode!r}; known: network, labels, none")
+
+
 def process_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) -> ProcessedScan:
-    """Segment one scan (network, given labels, or none per config.segmentation.mode) and detect its planes."""
-    raise NotImplementedError
+    """Segment one scan (network, given labels, or none per config.segmentation.mode) and detect its planes.
+
+    Optional voxel downsampling (config.window.voxel_size) comes first. Sensor frame throughout; timings
+    in ms under 'voxel', 'segment', 'planes', 'total'. Points are kept only when config.metrics.baselines.
+    """
+    timings: dict[str, float] = {}
+    timer = _Timer(timings)
+    start = time.perf_counter()
+    points, labels, ring, intensity = frame.points, frame.labels, frame.ring, frame.intensity
+    if labels is not None and len(labels) != len(points):
+        raise ValueError(f"scan at {frame.stamp}: {len(labels)} labels for {len(points)} points")
+    if config.window.voxel_size > 0:
+        with timer("voxel"):
+            keep = voxel_indices(points, config.window.voxel_size)
+            points = points[keep]
+            frame = Frame(points, frame.pose, frame.stamp, *(None if a is None else a[keep]
+                                                              for a in (labels, ring, intensity)))
+            labels, ring, intensity = frame.labels, frame.ring, frame.intensity
+    with timer("segment"):
+        labels = scan_labels(frame, points, ring, intensity, config, segmenter)
+    with timer("planes"):
+        found = planes_mod.detect_planes(points, labels, ring, config.planes, frame=index)
+    timings["total"] = 1000.0 * (time.perf_counter() - start)
+    return ProcessedScan(stamp=float(frame.stamp), pose=np.asarray(frame.pose, np.float64), planes=found,
+                         points=points if config.metrics.baselines else None, labels=labels, index=index,
+                         timings=timings)
+
+
+@dataclass
+class WindowPlanes:
+    """All planes of a window as arrays in the WINDOW frame (first scan's sensor frame).
+
+    classes (M,), scans (M,) position of the scan in the window, normals (M, 3), means (M, 3) m,
+    scatters (M, 3, 3) m², counts (M,) inliers."""
+
+    classes: np.ndarray
+    scans: np.ndarray
+    normals: np.ndarray
+    means: np.ndarray
+    scatters: np.ndarray
+    counts: np.ndarray
+
+
+def window_planes(planes_per_scan: Sequence[Sequence[Plane]], poses: np.ndarray) -> WindowPlanes:
+    """Put each scan's cached planes into the window frame with (K, 4, 4) window-relative poses (exact)."""
+    rows = [(p.cls, k, *p.transformed_stats(pose), p.count)
+            for k, (planes, pose) in enumerate(zip(planes_per_scan, poses)) for p in planes]
+    if not rows:
+        return WindowPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)),
+                            np.zeros((0, 3, 3)), np.zeros(0))
+    cls, scan, normal, mean, scatter, count = zip(*rows)
+    return WindowPlanes(np.array(cls), np.array(scan), np.array(normal), np.array(mean), np.array(scatter),
+                        np.array(count, np.float64))
+
+
+def plane_metrics(wp: WindowPlanes, config: Config, timings: dict[str, float] | None = None
+                  ) -> tuple[float, float, int, int]:
+    """(pne, cpv, n_clusters, n_groups) of window-frame planes with the thresholds of config.metrics."""
+    m = config.metrics
+    timer = _Timer(timings if timings is not None else {})
+    with timer("pne"):
+        clusters = pne_mod.pne_clusters(wp.normals, wp.counts, m.pne_cluster_deg, m.pne_floor_deg)
+        pne = pne_mod.pne_of_clusters(clusters)
+    with timer("cpv"):
+        groups = cpv_mod.coplane_groups(wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts,
+                                        m.cpv_angle_deg, m.cpv_epsilon)
+        cpv = cpv_mod.cpv_of_groups(groups)
+    return pne, cpv, len(clusters), len(groups)
 
 
 def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult:
-    """PNE and CPV (and baselines when enabled) of already processed scans, in the first scan's frame."""
-    raise NotImplementedError
+    """PNE and CPV (and baselines when enabled) of already processed scans, in the first scan's frame.
+
+    Timings in ms under 'transform', 'pne', 'cpv' (and 'mme', 'mpv', 'mom'), and 'total'."""
+    if not scans:
+        raise ValueError("a window needs at least one scan")
+    timings: dict[str, float] = {}
+    timer = _Timer(timings)
+    start = time.perf_counter()
+    poses = geometry.relative_to_first(np.stack([s.pose for s in scans]))
+    with timer("transform"):
+        wp = window_planes([s.planes for s in scans], poses)
+    pne, cpv, n_clusters, n_groups = plane_metrics(wp, config, timings)
+    result = WindowResult(stamps=[s.stamp for s in scans], pne=pne, cpv=cpv, n_planes=len(wp.counts),
+                          n_groups=n_groups, n_clusters=n_clusters, timings=timings)
+    if config.metrics.baselines:
+        _baselines(result, scans, poses, config, timer)
+    timings["total"] = 1000.0 * (time.perf_counter() - start)
+    return result
+
+
+def _baselines(result: WindowResult, scans: Sequence[ProcessedScan], poses: np.ndarray, config: Config,
+               timer: _Timer) -> None:
+    """MME, MPV, MOM (map-metrics definitions) on the scans' sensor-frame points and window-relative poses."""
+    from .metrics import mme, mom, mpv
+
+    clouds = [s.points for s in scans]
+    if any(c is None for c in clouds):
+        raise ValueError("baselines need the scans' points: process them with config.metrics.baselines on")
+    m = config.metrics
+    with timer("mme"):
+        result.mme = float(mme.mme(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))
+    with timer("mpv"):
+        result.mpv = float(mpv.mpv(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))
+    with timer("mom"):
+        result.mom = float(mom.mom(clouds, poses, m.radius))
 
 
 def evaluate_window(frames: Sequence[Frame], config: Config | None = None, cache: dict | None = None,
                     segmenter=None) -> WindowResult:
-    """The public one-call API: process each frame (once, via ``cache`` keyed by stamp) and score the window."""
-    raise NotImplementedError
+    """The public one-call API: process each frame (once, via ``cache`` keyed by stamp) and score the window.
+
+    ``cache`` (a dict the caller keeps across calls) maps stamp -> ProcessedScan; entries older than this
+    window's first stamp are dropped, so a caller sliding forward keeps it bounded. Default config:
+    ``Config()`` (network segmentation)."""
+    config = config if config is not None else Config()
+    if not frames:
+        raise ValueError("a window needs at least one frame")
+    cache = cache if cache is not None else {}
+    scans = []
+    for frame in frames:
+        key = float(frame.stamp)
+        if key not in cache:
+            cache[key] = process_scan(frame, config, segmenter)
+        scans.append(cache[key])
+    first = min(float(f.stamp) for f in frames)
+    for key in [k for k in cache if k < first]:
+        del cache[key]
+    return score_window(scans, config)
