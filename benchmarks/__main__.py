@@ -2,7 +2,7 @@
 import importlib
 import sys
 
-ALL = ["sim"]
+ALL = ["sim", "replay"]
 
 for name in sys.argv[1:] or ALL:
     print(f"== {name}")
