@@ -53,7 +53,7 @@ def test_translation_drift_raises_cpv_alarm():
     med, sigma = h.baseline("cpv")  # on the ln scale
     r = result(cpv=float(np.exp(med + 4.5 * sigma)))
     a = h.assess(r)
-    assert r.level == "WARN" and "translation drift: CPV 4.5σ" in r.message
+    assert r.level == "WARN" and "translation/rotation drift: CPV 4.5σ" in r.message
     assert a.warn_at["cpv"] == pytest.approx(from_scale("cpv", med + 4 * sigma))
 
 

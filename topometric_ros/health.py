@@ -24,8 +24,9 @@ from .config import HealthConfig
 
 LEVELS = ("OK", "WARN", "ERROR", "STALE")
 RANK = {name: i for i, name in enumerate(LEVELS)}
-#: metric -> (what its rise means, unit)
-METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation drift", "m²")}
+#: metric -> (what its rise means, unit). PNE rises with rotation error only; CPV with translation error and
+#: with rotation error (a rotated scan shifts its distant planes), so its alarm names both.
+METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation/rotation drift", "m²")}
 STATUS_NAME = "topometric: map consistency"
 MAD_TO_SIGMA = 1.4826
 CPV_TINY = 1e-12  # m², CPV below this is taken as this on the log scale
