@@ -3,6 +3,7 @@ mcap-ros2-support decoder), windows.csv/.json, metrics.png; truncated bags; real
 
 Where the metrics are not the point, the per-scan/per-window functions are a cheap real score (the spread
 of the floor height across the window, from the bag's ground-truth labels)."""
+import copy
 import csv
 import json
 import shutil
@@ -117,3 +118,70 @@ def test_rpe_is_zero_for_identical_and_grows_with_error():
     est = gt @ geometry.make_pose(np.eye(3), [[0, 0, 0.01 * k] for k in range(5)])
     worse = gt @ geometry.make_pose(np.eye(3), [[0, 0, 0.03 * k] for k in range(5)])
     assert 0 < relative_pose_error(gt, est) < relative_pose_error(gt, worse)
+
+
+def test_replay_survives_a_bag_of_bad_input_and_counts_each_case(office_bag, tmp_path):
+    """Copy the office bag, injecting: a malformed cloud, a cloud of NaN/inf, an empty cloud, a duplicate
+    scan, odometry with a non-unit (x3) and a zero quaternion, and a backwards jump of all stamps."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+    bad = tmp_path / "bad"
+    n_points, injected = 0, False
+    with bag.BagWriter(bad) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            t = t_ns * 1e-9
+            w.write(topic, t, msg)
+            if topic == "/points":
+                n_points += 1
+                if n_points == 3:
+                    w.write(topic, t + 0.001, msg)  # duplicate stamp
+                if n_points == 4:
+                    broken = copy.copy(msg)
+                    broken.point_step = 7  # fields beyond point_step
+                    w.write(topic, t + 0.001, broken)
+                if n_points == 5:
+                    nan = copy.copy(msg)
+                    nan.data = np.full(len(msg.data) // 4, np.nan, np.float32).view(np.uint8)
+                    w.write(topic, t + 0.001, nan)
+                if n_points == 6:
+                    empty = copy.copy(msg)
+                    empty.width, empty.row_step, empty.data = 0, 0, np.zeros(0, np.uint8)
+                    w.write(topic, t + 0.001, empty)
+            if topic == "/odom" and n_points == 8 and not injected:
+                injected = True
+                q = msg.pose.pose.orientation
+                odd = copy.deepcopy(msg)
+                odd.pose.pose.orientation.x, odd.pose.pose.orientation.w = 3 * q.x, 3 * q.w
+                odd.pose.pose.orientation.y, odd.pose.pose.orientation.z = 3 * q.y, 3 * q.z
+                odd.header.stamp.nanosec = (odd.header.stamp.nanosec + 1000) % 1_000_000_000
+                w.write(topic, t + 0.0001, odd)
+                zero = copy.deepcopy(msg)
+                zero.pose.pose.orientation.x = zero.pose.pose.orientation.y = 0.0
+                zero.pose.pose.orientation.z = zero.pose.pose.orientation.w = 0.0
+                w.write(topic, t + 0.0002, zero)
+    res = run(bad, tmp_path / "out")
+    c = res.summary["counters"]
+    assert res.summary["error"] == ""
+    assert c["dropped_duplicate"] == 1
+    assert c["dropped_bad_scan"] == 3  # malformed, all-NaN, empty
+    assert c["nonfinite_points"] > 0
+    assert c["bad_poses"] == 1  # the zero quaternion; the x3 one is normalised and used
+    assert c["scans_processed"] == 30 and res.summary["windows"] == 6
+    assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == 6
+
+
+def test_replay_cli_exit_codes(office_bag, tmp_path, capsys):
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    assert cli.main(["replay", str(tmp_path / "missing"), "--out", str(tmp_path / "o1"), "--quiet"]) == 2
+    assert "bag not found" in capsys.readouterr().err
+    broken = tmp_path / "broken"
+    shutil.copytree(bag_path, broken)
+    (f,) = broken.glob("*.mcap")
+    f.write_bytes(f.read_bytes()[:100_000])
+    assert cli.main(["replay", str(broken), "--out", str(tmp_path / "o2"), "--quiet", "--no-plot",
+                     "--segmentation", "labels"]) == 1
+    out = capsys.readouterr().out
+    assert "ERROR" in out and (tmp_path / "o2" / "windows.json").exists()
