@@ -370,15 +370,18 @@ def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> 
     t0 = records[0]["start"] if records else 0.0
     t = np.array([r["end"] - t0 for r in records])
     for ax, (key, label) in zip(axes[:, 0], rows):
-        for r in records:
-            if r["level"] in LEVEL_COLOURS:
-                ax.axvspan(r["start"] - t0, r["end"] - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
+        for r, nxt in zip(records, records[1:] + [None]):
+            if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
+                right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
+                ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
         for ep in (truth or {}).get("episodes", []):
             ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
         ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3)
         if key in ("pne", "cpv"):
             ax.plot(t, [r.get(f"{key}_warn_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["WARN"], lw=1)
             ax.plot(t, [r.get(f"{key}_error_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["ERROR"], lw=1)
+        if key == "cpv" and any(r.get("cpv", 0) > 0 for r in records):
+            ax.set_yscale("log")  # a variance: drift multiplies it
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("bag time of window end (s)")
