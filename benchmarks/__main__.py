@@ -2,7 +2,7 @@
 import importlib
 import sys
 
-ALL = ["sim", "replay"]
+ALL = ["sim", "metrics", "baselines", "replay"]
 
 for name in sys.argv[1:] or ALL:
     print(f"== {name}")

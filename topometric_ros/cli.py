@@ -147,6 +147,58 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plane_quality(args: argparse.Namespace) -> int:
+    import csv
+
+    from .config import load_config
+    from .planes import evaluate_detector
+
+    cfg = load_config(args.config, {"planes.detector": args.detector}).planes
+    res = evaluate_detector(args.scenes, args.frames, cfg, args.seed)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"plane_quality_{cfg.detector}"
+    stem.with_suffix(".json").write_text(json.dumps(res, indent=2))
+    cols = ("recall", "truth", "recalled", "median_purity", "min_purity", "planes_per_scan", "ms_per_scan")
+    with open(stem.with_suffix(".csv"), "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(("scene",) + cols)
+        for scene, r in res["scenes"].items():
+            w.writerow((scene,) + tuple(r[c] for c in cols))
+    print(f"detector {cfg.detector}, {args.frames} scans per scene, ground-truth planes: instances with >= 200 points")
+    print(f"{'scene':10s} {'recall':>8s} {'planes':>9s} {'med.purity':>11s} {'planes/scan':>12s} {'ms/scan':>8s}")
+    for scene, r in res["scenes"].items():
+        print(f"{scene:10s} {r['recall']:8.3f} {r['recalled']:4d}/{r['truth']:<4d} {r['median_purity']:11.4f} "
+              f"{r['planes_per_scan']:12.1f} {r['ms_per_scan']:8.1f}")
+    _plot_plane_quality(res, stem.with_suffix(".png"))
+    print(f"wrote {stem}.json, .csv, .png")
+    return 0
+
+
+def _plot_plane_quality(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(res["scenes"])
+    x = range(len(scenes))
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.5))
+    a.bar([i - 0.2 for i in x], [res["scenes"][s]["recall"] for s in scenes], 0.4, label="recall")
+    a.bar([i + 0.2 for i in x], [res["scenes"][s]["median_purity"] for s in scenes], 0.4, label="median purity")
+    a.axhline(0.95, color="k", lw=0.8, ls="--")
+    a.set_ylim(0.8, 1.0)
+    a.set_xticks(list(x), scenes)
+    a.legend(loc="lower right")
+    a.set_title(f"plane quality ({res['detector']})")
+    b.bar(list(x), [res["scenes"][s]["ms_per_scan"] for s in scenes])
+    b.set_xticks(list(x), scenes)
+    b.set_ylabel("ms per scan (median)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -213,6 +265,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
     e.add_argument("--out", default="results", help="output directory (default results/); finished settings are reused")
     e.set_defaults(func=cmd_evaluate)
+
+    q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")
+    q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"])
+    q.add_argument("--frames", type=int, default=20, help="scans per scene (default 20)")
+    q.add_argument("--detector", default="ring", choices=("ring", "open3d"))
+    q.add_argument("--seed", type=int, default=0, help="trajectory/noise seed")
+    q.add_argument("--config", default=None, help="YAML config (planes section is used)")
+    q.add_argument("--out", default="out/planes")
+    q.set_defaults(func=cmd_plane_quality)
     return p
 
 

@@ -44,6 +44,28 @@ class PlaneConfig:
     detector: str = "ring"  # ring (fast, uses the scan structure) | open3d (detect_planar_patches)
     min_points: int = 50  # smallest plane kept
     max_sample_points: int = 256  # inlier points kept per plane for display (stats use all inliers)
+    inlier_distance: float = 0.05  # m, largest point-to-plane distance of an inlier
+    normal_angle_deg: float = 10.0  # deg, largest angle between normals of parts of one plane
+    merge_distance: float = 0.06  # m, largest offset between parts of one plane (each centroid to the other plane)
+    merge_gap: float = 0.3  # m, coplanar wall/pillar parts farther apart than this stay separate planes
+    merge_floor_ceiling: bool = True  # coplanar floor (ceiling) parts are one plane whatever the gap
+    opening_width: float = 0.5  # m, a wider see-through gap (door) near a wall's foot splits it; 0 = never
+    opening_band: float = 1.0  # m, height above a wall's lowest inlier searched for openings
+    opening_min_points: int = 5  # rays through the gap needed to call it an opening
+    # ring detector: tiles of the ring × azimuth grid
+    azimuth_bins: int = 1800  # azimuth cells per revolution (VLP-32C at 10 Hz: 0.2°)
+    tile_rings: int = 4  # rings per tile
+    tile_columns: int = 8  # azimuth cells per tile
+    tile_levels: int = 4  # quadtree levels: tiles of 1×1 up to 2^(levels-1) × 2^(levels-1) base tiles
+    tile_min_points: int = 8  # fewer points of a class in a tile: the tile gives no plane seed
+    tile_max_rms: float = 0.02  # m, RMS point-to-plane distance of a planar tile
+    tile_min_flatness: float = 4.0  # a tile's smaller in-plane spread over its RMS off-plane (lines are no seeds)
+    tile_angle_deg: float = 20.0  # deg, largest normal angle between neighbouring tiles grown into one segment
+    # open3d detector: PointCloud.detect_planar_patches (Araújo & Oliveira 2020)
+    o3d_knn: int = 30  # neighbours for normal estimation and the detector's search
+    o3d_normal_variance_deg: float = 60.0  # detector's normal_variance_threshold_deg
+    o3d_coplanarity_deg: float = 75.0  # detector's coplanarity_deg
+    o3d_outlier_ratio: float = 0.75  # detector's outlier_ratio
 
 
 @dataclass

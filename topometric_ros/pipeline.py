@@ -39,6 +39,18 @@ class ProcessedScan:
     labels: np.ndarray | None = None
     index: int = -1
     timings: dict[str, float] = field(default_factory=dict)
+    _stacked: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
+    def plane_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The planes stacked (sensor frame, computed once): classes (P,), normals (P, 3), means (P, 3),
+        scatters (P, 3, 3), counts (P,)."""
+        if self._stacked is None:
+            p = self.planes
+            self._stacked = (np.array([q.cls for q in p], int), np.array([q.normal for q in p]).reshape(-1, 3),
+                             np.array([q.mean for q in p]).reshape(-1, 3),
+                             np.array([q.scatter for q in p]).reshape(-1, 3, 3),
+                             np.array([q.count for q in p], np.float64))
+        return self._stacked
 
 
 @dataclass
@@ -164,16 +176,15 @@ class WindowPlanes:
     counts: np.ndarray
 
 
-def window_planes(planes_per_scan: Sequence[Sequence[Plane]], poses: np.ndarray) -> WindowPlanes:
-    """Put each scan's cached planes into the window frame with (K, 4, 4) window-relative poses (exact)."""
-    rows = [(p.cls, k, *p.transformed_stats(pose), p.count)
-            for k, (planes, pose) in enumerate(zip(planes_per_scan, poses)) for p in planes]
-    if not rows:
-        return WindowPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)),
-                            np.zeros((0, 3, 3)), np.zeros(0))
-    cls, scan, normal, mean, scatter, count = zip(*rows)
-    return WindowPlanes(np.array(cls), np.array(scan), np.array(normal), np.array(mean), np.array(scatter),
-                        np.array(count, np.float64))
+def window_planes(scans: Sequence[ProcessedScan], poses: np.ndarray) -> WindowPlanes:
+    """Put each scan's cached planes into the window frame with (K, 4, 4) window-relative poses: exact, the
+    same as Plane.transformed_stats (n -> R n, mean -> R mean + t, scatter -> R S Rᵀ), vectorised."""
+    arrays = [s.plane_arrays() for s in scans]
+    scan = np.repeat(np.arange(len(scans)), [len(a[0]) for a in arrays])
+    cls, normals, means, scatters, counts = (np.concatenate(parts) for parts in zip(*arrays))
+    r, t = poses[scan, :3, :3], poses[scan, :3, 3]
+    return WindowPlanes(cls, scan, np.einsum("mij,mj->mi", r, normals), np.einsum("mij,mj->mi", r, means) + t,
+                        r @ scatters @ np.swapaxes(r, 1, 2), counts)
 
 
 def plane_metrics(wp: WindowPlanes, config: Config, timings: dict[str, float] | None = None
@@ -202,7 +213,7 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     start = time.perf_counter()
     poses = geometry.relative_to_first(np.stack([s.pose for s in scans]))
     with timer("transform"):
-        wp = window_planes([s.planes for s in scans], poses)
+        wp = window_planes(scans, poses)
     pne, cpv, n_clusters, n_groups = plane_metrics(wp, config, timings)
     result = WindowResult(stamps=[s.stamp for s in scans], pne=pne, cpv=cpv, n_planes=len(wp.counts),
                           n_groups=n_groups, n_clusters=n_clusters, timings=timings)
@@ -215,11 +226,11 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
 def _baselines(result: WindowResult, scans: Sequence[ProcessedScan], poses: np.ndarray, config: Config,
                timer: _Timer) -> None:
     """MME, MPV, MOM (map-metrics definitions) on the scans' sensor-frame points and window-relative poses."""
-    from .metrics import mme, mom, mpv
-
     clouds = [s.points for s in scans]
     if any(c is None for c in clouds):
         raise ValueError("baselines need the scans' points: process them with config.metrics.baselines on")
+    from .metrics import mme, mom, mpv
+
     m = config.metrics
     with timer("mme"):
         result.mme = float(mme.mme(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))

@@ -71,3 +71,560 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
         m = keep & (instance == inst)
         out.append(fit_plane(points[m], int(np.bincount(labels[m]).argmax()), frame))
     return out
+
+
+# --------------------------------------------------------------------------------------------------------
+# Detection. Both detectors produce "parts" (a class, summed inlier statistics and anchor points), merge the
+# coplanar parts of one surface, assign every static point to the nearest merged plane within
+# inlier_distance, and refit each plane on all its inliers with fit_plane.
+# --------------------------------------------------------------------------------------------------------
+
+_NCLS = C.NUM_CLASSES
+
+
+def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | None = None, config=None,
+                  frame: int = -1, return_inliers: bool = False):
+    """Planes of one scan, per static class (classes.STATIC), in the sensor frame.
+
+    points: (N, 3) sensor frame, metres. labels: (N,) uint8 class ids. ring: (N,) beam index (0 = lowest) or
+    None (then the beam is found from the elevation, VLP-32C table). config: PlaneConfig (config.planes).
+    Every plane: unit normal toward the sensor (offset > 0), stats from all its inliers, class, ``frame``.
+    Planes with fewer than config.min_points inliers are dropped.
+
+    Returns the list of planes, or with ``return_inliers`` (planes, (N,) int32 index of each point's plane,
+    −1 for none).
+    """
+    from .config import PlaneConfig
+
+    cfg = config if config is not None else PlaneConfig()
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    lab = np.asarray(labels).reshape(-1)
+    if len(lab) != len(pts):
+        raise ValueError(f"{len(pts)} points but {len(lab)} labels")
+    if ring is not None and len(ring) != len(pts):
+        raise ValueError(f"{len(pts)} points but {len(ring)} ring ids")
+    if cfg.detector not in ("ring", "open3d"):
+        raise ValueError(f"unknown plane detector {cfg.detector!r}; choose ring or open3d")
+    if len(pts) == 0:
+        return ([], np.zeros(0, np.int32)) if return_inliers else []
+    rows_cols = scan_rows_columns(pts, ring, cfg.azimuth_bins)
+    if cfg.detector == "ring":
+        assign, normal, offset = _assign_ring(pts, lab, rows_cols, cfg)
+    else:
+        assign, normal, offset = _assign_open3d(pts, lab, cfg)
+    groups = _groups(assign)
+    groups = _split_at_openings(pts, groups, normal, offset, rows_cols, cfg)
+    planes, assign = _refit(pts, lab, groups, cfg, frame)
+    return (planes, assign) if return_inliers else planes
+
+
+# ---- shared pieces -------------------------------------------------------------------------------------
+
+def _moments(pts: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(count (G,), sum (G, 3), Σ x xᵀ (G, 3, 3)) of float64 points per group id (0..G−1)."""
+    x = pts.astype(np.float64)
+    count = np.bincount(group, minlength=n_groups).astype(np.float64)
+    s = np.stack([np.bincount(group, x[:, i], n_groups) for i in range(3)], 1)
+    outer = np.empty((n_groups, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            outer[:, i, j] = outer[:, j, i] = np.bincount(group, x[:, i] * x[:, j], n_groups)
+    return count, s, outer
+
+
+def _planes_of(count, s, outer):
+    """Least-squares planes from summed moments: (normal (G, 3) toward the origin, offset (G,), mean (G, 3),
+    eigenvalues (G, 3) ascending of the scatter matrix)."""
+    n = np.maximum(count, 1.0)
+    mean = s / n[:, None]
+    scatter = outer - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
+    lam, vec = np.linalg.eigh(scatter)
+    normal = vec[:, :, 0]
+    offset = -np.einsum("ij,ij->i", normal, mean)
+    flip = offset < 0
+    normal[flip] *= -1
+    offset[flip] *= -1
+    return normal, offset, mean, lam
+
+
+def _merge_groups(cls, normal, offset, mean, i: np.ndarray, j: np.ndarray, cfg) -> np.ndarray:
+    """Merged group id for each part: parts of one class whose planes agree (normals within
+    normal_angle_deg, each centroid within merge_distance of the other plane) and that are adjacent (the
+    index pairs i, j) are joined, transitively."""
+    if len(cls) == 0:
+        return np.zeros(0, np.int64)
+    ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
+    return _components(len(cls), i[ok], j[ok])[1]
+
+
+def _all_pairs(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i < j) of the given indices."""
+    a, b = np.triu_indices(len(members), 1)
+    return members[a], members[b]
+
+
+def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
+    """For index pairs (i, j): same class, normals within angle_deg, each centroid within distance of the
+    other's plane (normals oriented toward the sensor, so no sign ambiguity)."""
+    cos = np.einsum("ij,ij->i", normal[i], normal[j])
+    d_ij = np.abs(np.einsum("ij,ij->i", normal[i], mean[j]) + offset[i])
+    d_ji = np.abs(np.einsum("ij,ij->i", normal[j], mean[i]) + offset[j])
+    return (cls[i] == cls[j]) & (cos >= np.cos(np.radians(angle_deg))) & (d_ij <= distance) & (d_ji <= distance)
+
+
+class _Rays:
+    """Every ray of the scan on the ring × azimuth grid: a point, or nothing (an empty cell; its direction
+    from the ring's mean elevation and the cell's azimuth centre). One point per cell is enough here."""
+
+    def __init__(self, pts: np.ndarray, row: np.ndarray, col: np.ndarray, azimuth_bins: int):
+        rows = int(row.max()) + 1
+        self.grid = np.full((rows, azimuth_bins), -1, np.int64)
+        self.grid[row, col] = np.arange(len(pts))
+        sub = slice(None, None, 7)  # a ring's elevation is nearly constant: a sample gives its mean
+        n = np.bincount(row[sub], minlength=rows)
+        elev = np.arctan2(pts[sub, 2], np.hypot(pts[sub, 0], pts[sub, 1]))
+        self.ring_elev = np.bincount(row[sub], elev, rows) / np.maximum(n, 1)
+        self.ring_seen = n > 0
+        self.pts, self.col, self.bins = pts, col, azimuth_bins
+
+    def between(self, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points, unit directions of empty rays) strictly between azimuth cells c0 and c1 (shorter arc)."""
+        w = self.bins
+        if (c1 - c0) % w > w // 2:
+            c0, c1 = c1, c0
+        if (c1 - c0) % w <= 1:
+            return self.pts[:0], np.zeros((0, 3))
+        cols = (c0 + 1 + np.arange((c1 - c0) % w - 1)) % w
+        block = self.grid[:, cols]
+        er, ec = np.nonzero((block < 0) & self.ring_seen[:, None])
+        e, az = self.ring_elev[er], (cols[ec] + 0.5) * (2 * np.pi / w)
+        empty = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], 1)
+        return self.pts[block[block >= 0]], empty
+
+
+def _groups(assign: np.ndarray) -> dict[int, np.ndarray]:
+    """{group id: indices of its points} for the ids >= 0 in ``assign``."""
+    idx = np.flatnonzero(assign >= 0)
+    order = idx[np.argsort(assign[idx], kind="stable")]
+    ids, starts = np.unique(assign[order], return_index=True)
+    return dict(zip(ids.tolist(), np.split(order, starts[1:])))
+
+
+def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset: np.ndarray, rows_cols,
+                       cfg) -> list[np.ndarray]:
+    """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
+    within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (of the rays
+    through the gap, at least opening_min_points and at least half returned behind the plane or not at all;
+    the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
+    nothing. Coplanar wall pieces joined only by a lintel become separate planes. Sensor z is taken as up.
+    groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); rows_cols:
+    each point's (row, column) on the scan grid (scan_rows_columns). Returns the point indices per plane."""
+    out = []
+    rays = None
+    for g, members in groups.items():
+        n, d = normal[g], offset[g]
+        if cfg.opening_width <= 0 or len(members) < cfg.min_points or abs(n[2]) > 0.3:
+            out.append(members)
+            continue
+        along = np.array([-n[1], n[0], 0.0]) / np.hypot(n[0], n[1])
+        q = pts[members]
+        u, v = q @ along, q[:, 2]
+        floor = np.partition(v, len(v) // 100)[len(v) // 100]
+        low = np.flatnonzero(v < floor + cfg.opening_band)
+        low = low[np.argsort(u[low])]
+        gaps = np.flatnonzero(np.diff(u[low]) > cfg.opening_width)
+        if len(gaps) == 0:
+            out.append(members)
+            continue
+        if rays is None:
+            rays = _Rays(pts, rows_cols[0], rows_cols[1], cfg.azimuth_bins)
+        cuts = []
+        for k in gaps:
+            x, e = rays.between(rays.col[members[low[k]]], rays.col[members[low[k + 1]]])
+            if len(x) + len(e) < cfg.opening_min_points:
+                continue
+            side = x @ n + d  # > 0 in front of the plane (sensor side), < 0 behind
+            hit = np.abs(side) > cfg.inlier_distance
+            x, side = x[hit], side[hit]
+            t = d / (d - side)  # the ray meets the plane at t * x
+            toward = e @ n
+            e = e[toward < -1e-6]
+            z = np.concatenate([t * x[:, 2], e[:, 2] * (d / -toward[toward < -1e-6])])
+            through = np.concatenate([side < 0, np.ones(len(e), bool)])
+            ok = (np.concatenate([t > 0, np.ones(len(e), bool)]) & (z >= floor) & (z < floor + cfg.opening_band))
+            n_through = np.count_nonzero(through & ok)
+            if n_through >= cfg.opening_min_points and n_through >= 0.5 * np.count_nonzero(ok):
+                cuts.append((u[low[k]] + u[low[k + 1]]) / 2)
+        if cuts:
+            part = np.searchsorted(np.sort(cuts), u)
+            out += [members[part == i] for i in range(len(cuts) + 1)]
+        else:
+            out.append(members)
+    return out
+
+
+def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
+    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points.
+    Returns the planes and each point's plane index (−1 none)."""
+    out = np.full(len(pts), -1, np.int32)
+    planes = []
+    rng = np.random.default_rng(0)
+    for members in groups:
+        if len(members) < max(cfg.min_points, 3):
+            continue
+        cls = int(lab[members[0]])
+        planes.append(fit_plane(pts[members], cls, frame, cfg.max_sample_points, rng))
+        out[members] = len(planes) - 1
+    return planes, out
+
+
+# ---- ring detector -------------------------------------------------------------------------------------
+
+def scan_rows_columns(points: np.ndarray, ring: np.ndarray | None, azimuth_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's (row, column) in the organised scan: row = ring (or the nearest VLP-32C beam by
+    elevation when ring is None), column = azimuth cell of ``azimuth_bins`` per revolution."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    if ring is None:
+        from .sim.lidar import RING_ELEVATION_DEG
+
+        elev = np.degrees(np.arctan2(z, np.hypot(x, y)))
+        mids = (RING_ELEVATION_DEG[1:] + RING_ELEVATION_DEG[:-1]) / 2
+        row = np.searchsorted(mids, elev).astype(np.int64)
+    else:
+        row = np.asarray(ring).astype(np.int64)
+    az = np.arctan2(y, x)
+    col = np.floor(az * (azimuth_bins / (2 * np.pi))).astype(np.int64) % azimuth_bins
+    return row, col
+
+
+_STATIC_INDEX = np.full(256, -1, np.int64)
+_STATIC_INDEX[list(C.STATIC)] = np.arange(len(C.STATIC))
+
+
+def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
+    """Plane group per point (−1 none) on the organised scan.
+
+    Static points go into tiles of the ring × azimuth grid per class (tile_rings × tile_columns cells, and
+    coarser levels of 2×2 tiles). A quadtree keeps the coarsest planar tile over each cell (large tiles give
+    good normals at short range and on sparse rings; small tiles separate surfaces). Neighbouring planar tiles
+    that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
+    plane of its own or a neighbouring tile within inlier_distance."""
+    assign = np.full(len(pts), -1, np.int64)
+    static = np.flatnonzero(_STATIC_INDEX[lab] >= 0)
+    if len(static) < 3:
+        return assign, np.zeros((0, 3)), np.zeros(0)
+    p = pts[static]
+    ci = _STATIC_INDEX[lab[static]]
+    row, col = rows_cols[0][static], rows_cols[1][static]
+    tiles = _quadtree_tiles(p, ci, row // cfg.tile_rings, col // cfg.tile_columns,
+                            -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
+    if tiles is None:
+        return assign, np.zeros((0, 3)), np.zeros(0)
+    count, s, outer, normal, offset, mean, tcls, grid, cell = tiles
+    # grow segments over neighbouring tiles that agree
+    a, b = _neighbour_pairs(grid)
+    ok = _coplanar(tcls, normal, offset, mean, a, b, cfg.tile_angle_deg, cfg.merge_distance)
+    n_seg, seg = _components(len(count), a[ok], b[ok])
+    scount, ss, souter = _sum_moments(seg, n_seg, count, s, outer)
+    snormal, soffset, smean, _ = _planes_of(scount, ss, souter)
+    scls = np.zeros(n_seg, np.int64)
+    scls[seg] = tcls
+    # merge coplanar segments that touch (or nearly touch; floors and ceilings whatever the gap)
+    i, j = [seg[a]], [seg[b]]
+    near = _near_pairs(mean, cfg.merge_gap)
+    i.append(seg[near[0]])
+    j.append(seg[near[1]])
+    if cfg.merge_floor_ceiling:
+        for c in (C.FLOOR, C.CEILING):
+            hi, hj = _all_pairs(np.flatnonzero(scls == _STATIC_INDEX[c]))
+            i.append(hi)
+            j.append(hj)
+    i, j = np.concatenate(i), np.concatenate(j)
+    pair = i != j
+    merged = _merge_groups(scls, snormal, soffset, smean, i[pair], j[pair], cfg)
+    n_m = int(merged.max()) + 1
+    mnormal, moffset, _, _ = _planes_of(*_sum_moments(merged, n_m, scount, ss, souter))
+    plane_of_tile = merged[seg]
+    # each point: its own tile's plane if near enough, else the nearest plane of the 8 neighbouring tiles
+    plane_grid = np.where(grid >= 0, plane_of_tile[np.maximum(grid, 0)], -1)
+    best = _nearest_candidate(p, cell, plane_grid, mnormal, moffset, cfg.inlier_distance)
+    assign[static] = best
+    return assign, mnormal, moffset
+
+
+def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
+    """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, class
+    index) and the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar tile), plus each
+    point's flat cell index in that grid; None when no tile is planar."""
+    levels = max(int(cfg.tile_levels), 1)
+    f = 2 ** (levels - 1)
+    trows = -(-(int(tr.max()) + 1) // f) * f
+    pcols = -(-tcols // f) * f
+    ncls = len(C.STATIC)
+    cell = (ci * trows + tr) * pcols + tc
+    shape = (ncls, trows, pcols)
+    count, s, outer = _moments(p, cell, ncls * trows * pcols)
+    count, s, outer = count.reshape(shape), s.reshape(shape + (3,)), outer.reshape(shape + (3, 3))
+    covered = np.zeros((ncls, trows // f, pcols // f), bool)
+    chosen = []  # per level: (flat indices at that level, count, s, outer, normal, offset, mean)
+    for k in range(levels - 1, -1, -1):
+        m = 2 ** k
+        lshape = (ncls, trows // m, m, pcols // m, m)
+        lc = count.reshape(lshape).sum((2, 4))
+        ls = s.reshape(lshape + (3,)).sum((2, 4))
+        lo = outer.reshape(lshape + (3, 3)).sum((2, 4))
+        cand = np.flatnonzero((lc >= cfg.tile_min_points).reshape(-1) & ~covered.reshape(-1))
+        cc, cs, co = lc.reshape(-1)[cand], ls.reshape(-1, 3)[cand], lo.reshape(-1, 3, 3)[cand]
+        nrm, off, mean, lam = _planes_of(cc, cs, co)
+        good = ((lam[:, 0] <= cc * cfg.tile_max_rms ** 2) & (lam[:, 1] >= cfg.tile_min_flatness ** 2 * lam[:, 0])
+                & (lam[:, 1] >= cc * 1e-6))
+        chosen.append((k, cand[good], cc[good], cs[good], co[good], nrm[good], off[good], mean[good]))
+        used = np.zeros(covered.size, bool)
+        used[cand[good]] = True
+        covered = covered | used.reshape(covered.shape)
+        if k:
+            covered = covered.repeat(2, axis=1).repeat(2, axis=2)
+    n_tiles = sum(len(c[1]) for c in chosen)
+    if n_tiles == 0:
+        return None
+    grid = np.full(shape, -1, np.int64)
+    start = 0
+    for k, idx, *_ in chosen:
+        m = 2 ** k
+        ids = np.full(ncls * (trows // m) * (pcols // m), -1, np.int64)
+        ids[idx] = np.arange(start, start + len(idx))
+        ids = ids.reshape(ncls, trows // m, pcols // m).repeat(m, axis=1).repeat(m, axis=2)
+        grid = np.maximum(grid, ids)
+        start += len(idx)
+    cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 8)]
+    tcls = np.concatenate([idx // ((trows // 2 ** k) * (pcols // 2 ** k)) for k, idx, *_ in chosen])
+    grid = grid[:, :, :tcols]  # drop padding so that azimuth wraps around
+    cell = (ci * trows + tr) * tcols + tc
+    return (*cat, tcls, grid, cell)
+
+
+def _sum_moments(group, n, count, s, outer):
+    """Moments summed per group id."""
+    return (np.bincount(group, count, n), np.stack([np.bincount(group, s[:, k], n) for k in range(3)], 1),
+            np.stack([np.bincount(group, outer[:, i, j], n) for i in range(3) for j in range(3)],
+                     1).reshape(n, 3, 3))
+
+
+def _components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of n nodes joined by edges (a, b)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    return connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+
+
+def _shifted(grid: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """grid[..., r + dr, c + dc] (columns wrap around, rows outside the grid give −1)."""
+    out = np.roll(grid, -dc, axis=-1)
+    if dr > 0:
+        out = np.concatenate([out[..., dr:, :], np.full_like(out[..., :dr, :], -1)], axis=-2)
+    elif dr < 0:
+        out = np.concatenate([np.full_like(out[..., dr:, :], -1), out[..., :dr, :]], axis=-2)
+    return out
+
+
+def _neighbour_pairs(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct (a, b) ids of 8-neighbouring cells of a (..., rows, cols) id grid (−1 empty), each pair once."""
+    keys = []
+    n = int(grid.max()) + 1
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        b = _shifted(grid, dr, dc)
+        m = (grid >= 0) & (b >= 0) & (grid != b)
+        lo, hi = np.minimum(grid[m], b[m]), np.maximum(grid[m], b[m])
+        keys.append(lo * n + hi)
+    keys = np.unique(np.concatenate(keys))
+    return keys // max(n, 1), keys % max(n, 1)
+
+
+def _near_pairs(where: np.ndarray, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs of the points ``where`` (K, 3) closer than ``gap`` metres."""
+    if gap <= 0 or len(where) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(where).query_pairs(gap, output_type="ndarray")
+    return pairs[:, 0], pairs[:, 1]
+
+
+def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndarray:
+    """Per point: its own tile's plane when within max_dist, else the nearest plane (of its class) among the
+    8 neighbouring cells' planes within max_dist, else −1."""
+    ncls, trows, tcols = plane_grid.shape
+    flat = plane_grid.reshape(-1)
+    nrm, off = normal.astype(np.float32), offset.astype(np.float32)
+    own = flat[cell]
+    d_own = np.abs(np.einsum("ij,ij->i", p, nrm[np.maximum(own, 0)]) + off[np.maximum(own, 0)])
+    best = np.where((own >= 0) & (d_own <= max_dist), own, -1)
+    rest = np.flatnonzero(best < 0)
+    if len(rest) == 0:
+        return best
+    q, c = p[rest], cell[rest]
+    cls, r, col = c // (trows * tcols), (c // tcols) % trows, c % tcols
+    best_r = np.full(len(rest), -1, np.int64)
+    best_d = np.full(len(rest), np.float32(max_dist))
+    for dr in (-1, 0, 1):
+        rr = r + dr
+        inside = (rr >= 0) & (rr < trows)
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            cand = np.where(inside, flat[(cls * trows + np.clip(rr, 0, trows - 1)) * tcols + (col + dc) % tcols], -1)
+            ci = np.maximum(cand, 0)
+            d = np.abs(np.einsum("ij,ij->i", q, nrm[ci]) + off[ci])
+            take = (cand >= 0) & (d <= best_d)
+            best_r[take] = cand[take]
+            best_d[take] = d[take]
+    best[rest] = best_r
+    return best
+
+
+# ---- open3d detector -----------------------------------------------------------------------------------
+
+def _assign_open3d(pts, lab, cfg) -> np.ndarray:
+    """Plane group per point (−1 none) from Open3D detect_planar_patches per static class, coplanar patches
+    of one surface merged; a point goes to the nearest merged plane whose patch boxes contain it."""
+    import open3d as o3d
+
+    assign = np.full(len(pts), -1, np.int64)
+    parts = []  # (class, member indices)
+    for cls in C.STATIC:
+        idx = np.flatnonzero(lab == cls)
+        if len(idx) < max(cfg.min_points, cfg.o3d_knn, 3):
+            continue
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[idx].astype(np.float64)))
+        search = o3d.geometry.KDTreeSearchParamKNN(cfg.o3d_knn)
+        pcd.estimate_normals(search)
+        patches = pcd.detect_planar_patches(normal_variance_threshold_deg=cfg.o3d_normal_variance_deg,
+                                            coplanarity_deg=cfg.o3d_coplanarity_deg,
+                                            outlier_ratio=cfg.o3d_outlier_ratio,
+                                            search_param=search)
+        for box in patches:
+            box.extent = np.maximum(np.asarray(box.extent), [0, 0, 2 * cfg.inlier_distance])
+            inside = np.asarray(box.get_point_indices_within_bounding_box(pcd.points), np.int64)
+            if len(inside) >= 3:
+                parts.append((cls, idx[inside]))
+    if not parts:
+        return assign, np.zeros((0, 3)), np.zeros(0)
+    member = np.concatenate([m for _, m in parts])
+    part_id = np.repeat(np.arange(len(parts)), [len(m) for _, m in parts])
+    count, s, outer = _moments(pts[member], part_id, len(parts))
+    normal, offset, mean, _ = _planes_of(count, s, outer)
+    cls = np.array([c for c, _ in parts], np.int64)
+    i, j = _all_pairs(np.arange(len(parts)))
+    ok = _coplanar(cls, normal, offset, mean, i, j, cfg.normal_angle_deg, cfg.merge_distance)
+    i, j = i[ok], j[ok]
+    horiz = np.isin(cls[i], [C.FLOOR, C.CEILING]) & cfg.merge_floor_ceiling
+    near = np.array([h or _sets_within(pts[parts[a][1]], pts[parts[b][1]], cfg.merge_gap)
+                     for a, b, h in zip(i, j, horiz)], bool)
+    merged = _merge_groups(cls, normal, offset, mean, i[near], j[near], cfg)
+    n_m = int(merged.max()) + 1
+    mnormal, moffset, _, _ = _planes_of(np.bincount(merged, count, n_m),
+                                        np.stack([np.bincount(merged, s[:, k], n_m) for k in range(3)], 1),
+                                        np.stack([np.bincount(merged, outer[:, a, b], n_m) for a in range(3)
+                                                  for b in range(3)], 1).reshape(n_m, 3, 3))
+    cand = merged[part_id]
+    d = np.abs(np.einsum("ij,ij->i", pts[member].astype(np.float64), mnormal[cand]) + moffset[cand])
+    keep = d <= cfg.inlier_distance
+    member, cand, d = member[keep], cand[keep], d[keep]
+    order = np.lexsort((d, member))  # per point, nearest first
+    first = np.ones(len(order), bool)
+    first[1:] = member[order][1:] != member[order][:-1]
+    assign[member[order][first]] = cand[order][first]
+    return assign, mnormal, moffset
+
+
+def _sets_within(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+    """Whether some point of a and some point of b are within ``gap`` metres."""
+    from scipy.spatial import cKDTree
+
+    small, large = (a, b) if len(a) <= len(b) else (b, a)
+    d, _ = cKDTree(large).query(small, k=1, distance_upper_bound=gap)
+    return bool(np.isfinite(d).any())
+
+
+# ---- quality against ground-truth plane instances ------------------------------------------------------
+
+def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 200,
+                  static: tuple = C.STATIC) -> dict:
+    """Detected planes of one scan against the simulator's plane-instance ids.
+
+    assign: (N,) plane index per point (−1 none), as ``detect_planes(..., return_inliers=True)`` gives.
+    labels, instance: (N,) ground-truth class and plane-instance id per point.
+
+    Definitions. Ground-truth planes: instances with ≥ ``min_points`` points of a static class. A detected
+    plane's majority instance is the instance most of its inliers come from; its purity is that fraction.
+    A ground-truth plane is recalled when some detected plane has it as majority instance AND holds ≥ 50 %
+    of its points. Returns {'n_truth', 'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one
+    per detected plane), 'missed' (instance ids), 'n_planes'}.
+    """
+    assign = np.asarray(assign)
+    instance = np.asarray(instance).astype(np.int64)
+    keep = np.isin(labels, static)
+    ids, sizes = np.unique(instance[keep], return_counts=True)
+    truth = ids[sizes >= min_points]
+    size_of = dict(zip(ids.tolist(), sizes.tolist()))
+    det = assign >= 0
+    pairs, overlap = np.unique(np.stack([assign[det].astype(np.int64), instance[det]], 1), axis=0,
+                               return_counts=True)
+    recalled, purity = set(), []
+    if len(pairs):
+        planes, starts = np.unique(pairs[:, 0], return_index=True)
+        for start, stop in zip(starts, list(starts[1:]) + [len(pairs)]):
+            k = start + int(np.argmax(overlap[start:stop]))
+            purity.append(float(overlap[k] / overlap[start:stop].sum()))
+            inst = int(pairs[k, 1])
+            if overlap[k] >= 0.5 * size_of.get(inst, np.inf):
+                recalled.add(inst)
+    hit = [int(i) for i in truth if int(i) in recalled]
+    return {"n_truth": int(len(truth)), "n_recalled": len(hit),
+            "recall": len(hit) / len(truth) if len(truth) else float("nan"), "purity": purity,
+            "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
+
+
+def evaluate_detector(scenes, frames: int = 20, config=None, seed: int = 0, min_points: int = 200,
+                      progress: bool = True) -> dict:
+    """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
+
+    For each scene: ``frames`` scans of simulated_frames(scene, frames, seed=seed); per scene the recall
+    (recalled / ground-truth planes over all scans, see :func:`plane_quality`), the median purity over all
+    detected planes, planes per scan and the median detection time per scan (ms, wall clock, this process).
+    Returns {'detector', 'frames', 'seed', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
+    """
+    import time
+
+    from tqdm import tqdm
+
+    from .config import PlaneConfig
+    from .sim.frames import simulated_frames
+
+    cfg = config if config is not None else PlaneConfig()
+    out = {"detector": cfg.detector, "frames": frames, "seed": seed, "min_points": min_points, "scenes": {},
+           "scans": []}
+    for scene in scenes:
+        sim, instances = simulated_frames(scene, frames, seed=seed)
+        truth = recalled = 0
+        purity, n_planes, ms = [], [], []
+        for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} ({cfg.detector})",
+                                           disable=not progress, leave=False)):
+            t = time.perf_counter()
+            planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
+            ms.append(1000 * (time.perf_counter() - t))
+            q = plane_quality(assign, f.labels, inst, min_points)
+            truth, recalled = truth + q["n_truth"], recalled + q["n_recalled"]
+            purity += q["purity"]
+            n_planes.append(len(planes))
+            out["scans"].append({"scene": scene, "frame": i, "points": len(f.points), "planes": len(planes),
+                                 "truth": q["n_truth"], "recalled": q["n_recalled"], "missed": q["missed"],
+                                 "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
+                                 "ms": round(ms[-1], 3)})
+        out["scenes"][scene] = {"recall": recalled / truth if truth else float("nan"), "truth": truth,
+                                "recalled": recalled,
+                                "median_purity": float(np.median(purity)) if purity else float("nan"),
+                                "min_purity": float(np.min(purity)) if purity else float("nan"),
+                                "planes_per_scan": float(np.mean(n_planes)), "ms_per_scan": float(np.median(ms))}
+    return out

@@ -1,0 +1,110 @@
+"""MME / MPV speed and accuracy on one core.
+
+1. map-metrics' depth reference data (104k points, radius 0.2 m): exact MME and MPV, time and error
+   against the reference values (goal: 1e-8, <= 0.3 s each; map-metrics C++ needs 3.3 / 3.8 s).
+2. Simulated VLP-32 windows (garage, floor2; 5 / 10 / 15 scans, radius 1.0 m): the fast approximation
+   (exact=False), and the exact value where it is feasible, with the relative error (goal: 15 scans
+   <= 10 s each, within 0.5 %).
+
+Run: ``python -m benchmarks baselines`` (``TOPOMETRIC_BENCH_FULL=1`` adds exact 15-scan garage, minutes).
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import median_ms, record, single_core
+
+REFERENCE = Path(os.environ.get("TOPOMETRIC_MAPMETRICS_DATA", "/work/shared/peer/map-metrics-depth"))
+REF_MME, REF_MPV = -3.6144387057257523, 0.0025390347963358565
+#: windows (scene -> scan counts) whose exact value is computed too (exact costs grow with the square of
+#: the density: 3 floor2 scans already hold 1.7e9 neighbour pairs)
+EXACT = {"garage": (5,), "floor2": (3,)}
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    with open(path, "rb") as f:
+        n = 0
+        while (line := f.readline().decode().strip()) != "end_header":
+            if line.startswith("element vertex"):
+                n = int(line.split()[-1])
+        return np.frombuffer(f.read(24 * n), dtype="<f8").reshape(n, 3).copy()
+
+
+def _timed(fn):
+    t = time.perf_counter()
+    value = fn()
+    return value, time.perf_counter() - t
+
+
+def reference(results: dict, repeats: int = 5) -> None:
+    from topometric_ros.metrics.mme import mme
+    from topometric_ros.metrics.mpv import mpv
+
+    if not (REFERENCE / "pcs").is_dir():
+        results["reference"] = f"skipped: no data at {REFERENCE}"
+        return
+    names = sorted(p.stem[3:] for p in (REFERENCE / "pcs").glob("PC-*.ply"))
+    clouds = [_read_ply(REFERENCE / "pcs" / f"PC-{n}.ply") for n in names]
+    poses = np.stack([np.loadtxt(REFERENCE / "poses" / f"pose-{n}.txt") for n in names])
+    for name, fn, ref in (("mme", mme, REF_MME), ("mpv", mpv, REF_MPV)):
+        value = fn(clouds, poses, radius=0.2)
+        med, samples = median_ms(lambda: fn(clouds, poses, radius=0.2), repeats=repeats, warmup=1)
+        results[f"reference_{name}_value"] = value
+        results[f"reference_{name}_abs_error"] = abs(value - ref)
+        results[f"reference_{name}_s_median"] = round(med / 1000, 3)
+        results[f"reference_{name}_s_min"] = round(min(samples) / 1000, 3)
+
+
+def windows(results: dict, sizes=(5, 10, 15), repeats: int = 3, full: bool = False) -> None:
+    from topometric_ros.metrics.mme import mme
+    from topometric_ros.metrics.mpv import mme_mpv, mpv
+    from topometric_ros.sim.frames import simulated_frames
+
+    for scene in ("garage", "floor2"):
+        frames, _ = simulated_frames(scene, max(sizes))
+        for n in sizes:
+            clouds = [f.points for f in frames[:n]]
+            poses = np.stack([f.pose for f in frames[:n]])
+            key = f"{scene}_{n}"
+            results[f"{key}_points"] = int(sum(len(c) for c in clouds))
+            fast = {}
+            for name, fn in (("mme", mme), ("mpv", mpv)):
+                fast[name] = fn(clouds, poses, exact=False)
+                med, _ = median_ms(lambda: fn(clouds, poses, exact=False), repeats=repeats, warmup=0)
+                results[f"{key}_{name}_fast_value"] = fast[name]
+                results[f"{key}_{name}_fast_s_median"] = round(med / 1000, 2)
+            if n in EXACT.get(scene, ()) or (full and scene == "garage"):
+                (e_mme, e_mpv), secs = _timed(lambda: mme_mpv(clouds, poses, exact=True))
+                results[f"{key}_exact_mme_mpv_s"] = round(secs, 1)
+                results[f"{key}_mme_exact_value"] = e_mme
+                results[f"{key}_mpv_exact_value"] = e_mpv
+                results[f"{key}_mme_fast_rel_error"] = abs(fast["mme"] / e_mme - 1)
+                results[f"{key}_mpv_fast_rel_error"] = abs(fast["mpv"] / e_mpv - 1)
+
+
+def mom_window(results: dict, scene: str = "garage", n: int = 5) -> None:
+    """MOM with the orthogonal subsets extracted from the first scan (no speed goal; map-metrics' way)."""
+    from topometric_ros.metrics.mom import mom
+    from topometric_ros.sim.frames import simulated_frames
+
+    frames, _ = simulated_frames(scene, n)
+    value, secs = _timed(lambda: mom([f.points for f in frames], np.stack([f.pose for f in frames])))
+    results[f"{scene}_{n}_mom_value"] = value
+    results[f"{scene}_{n}_mom_s"] = round(secs, 2)
+
+
+def main() -> dict:
+    single_core()
+    results: dict = {}
+    reference(results)
+    windows(results, full=os.environ.get("TOPOMETRIC_BENCH_FULL") == "1")
+    mom_window(results)
+    return record("baselines", results)
+
+
+if __name__ == "__main__":
+    main()

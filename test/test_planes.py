@@ -1,0 +1,196 @@
+"""Per-scan plane detection: quality against the simulator's plane instances, geometry, edge cases."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from topometric_ros import classes as C
+from topometric_ros.config import Config, PlaneConfig
+from topometric_ros.planes import detect_planes, fit_plane, plane_quality
+from topometric_ros.sim.frames import simulated_frames
+from topometric_ros.sim.lidar import Lidar, LidarSpec
+from topometric_ros.sim.scenes import SceneBuilder
+
+
+@pytest.fixture(scope="module")
+def scans():
+    """Three scans of each of two scenes, with per-point plane-instance ids."""
+    return {scene: simulated_frames(scene, 3, seed=3) for scene in ("office1", "garage")}
+
+
+def _quality(frames, instances, cfg, use_ring=True):
+    truth = recalled = 0
+    purity = []
+    for f, inst in zip(frames, instances):
+        _, assign = detect_planes(f.points, f.labels, f.ring if use_ring else None, cfg, return_inliers=True)
+        q = plane_quality(assign, f.labels, inst)
+        truth, recalled = truth + q["n_truth"], recalled + q["n_recalled"]
+        purity += q["purity"]
+    return recalled / truth, float(np.median(purity))
+
+
+@pytest.mark.parametrize("scene", ["office1", "garage"])
+def test_default_detector_recall_and_purity(scans, scene):
+    recall, purity = _quality(*scans[scene], PlaneConfig())
+    assert recall >= 0.95
+    assert purity >= 0.98
+
+
+def test_ring_less_input_is_as_good(scans):
+    recall, purity = _quality(*scans["office1"], PlaneConfig(), use_ring=False)
+    assert recall >= 0.95 and purity >= 0.98
+
+
+def test_planes_face_the_sensor_and_hold_their_inliers(scans):
+    frames, _ = scans["office1"]
+    f = frames[0]
+    planes, assign = detect_planes(f.points, f.labels, f.ring, PlaneConfig(), frame=7, return_inliers=True)
+    assert len(planes) >= 5
+    for k, pl in enumerate(planes):
+        assert pl.offset > 0 and np.isclose(np.linalg.norm(pl.normal), 1.0)
+        assert pl.normal @ -pl.mean > 0  # the sensor origin is on the normal's side
+        assert pl.cls in C.STATIC and pl.frame == 7
+        members = assign == k
+        assert pl.count == members.sum() >= PlaneConfig().min_points
+        assert np.all(f.labels[members] == pl.cls)
+        assert np.abs(f.points[members] @ pl.normal + pl.offset).max() <= PlaneConfig().inlier_distance + 1e-3
+        ref = fit_plane(f.points[members], pl.cls)
+        np.testing.assert_allclose(pl.scatter, ref.scatter, rtol=1e-6, atol=1e-6)
+    assert np.all(np.isin(f.labels[assign >= 0], C.STATIC))
+
+
+def _plane_scan(normal, offset, noise=0.005, seed=0, more=(), max_range=40.0):
+    """A VLP-32C sweep of infinite planes n·x + d = 0 (sensor frame, class wall): the given one and the
+    (normal, offset) pairs in ``more``; each ray returns its nearest hit within max_range metres."""
+    dirs, ring = LidarSpec().directions()
+    t = np.full(len(dirs), np.inf)
+    for n, d in [(normal, offset), *more]:
+        n = np.asarray(n, float) / np.linalg.norm(n)
+        denom = dirs @ n
+        hit = denom < -1e-9
+        t[hit] = np.minimum(t[hit], d / -denom[hit])
+    keep = (t > 0.4) & (t < max_range)
+    rng = np.random.default_rng(seed)
+    pts = dirs[keep] * (t[keep] + rng.normal(0, noise, keep.sum()))[:, None]
+    return pts.astype(np.float32), np.full(keep.sum(), C.WALL, np.uint8), ring[keep]
+
+
+@pytest.mark.parametrize("detector", ["ring", "open3d"])
+def test_synthetic_plane_recovered(detector):
+    normal = np.array([-0.8, -0.55, 0.1])
+    normal /= np.linalg.norm(normal)
+    pts, labels, ring = _plane_scan(normal, 3.0, max_range=15.0)
+    planes = detect_planes(pts, labels, ring, PlaneConfig(detector=detector))
+    assert len(planes) == 1
+    (pl,) = planes
+    assert np.degrees(np.arccos(min(1.0, pl.normal @ normal))) < 0.1
+    assert abs(pl.offset - 3.0) < 0.003
+    assert pl.count >= 0.95 * len(pts)
+
+
+def test_ring_none_finds_the_same_plane():
+    pts, labels, ring = _plane_scan([0.0, 1.0, -0.2], 2.5)
+    a = detect_planes(pts, labels, ring)
+    b = detect_planes(pts, labels, None)
+    assert len(a) == len(b) == 1
+    assert a[0].count == b[0].count
+    np.testing.assert_allclose(a[0].normal, b[0].normal, atol=1e-6)
+
+
+@pytest.mark.parametrize("detector", ["ring", "open3d"])
+def test_empty_and_tiny_inputs_give_no_planes(detector):
+    cfg = PlaneConfig(detector=detector)
+    assert detect_planes(np.zeros((0, 3), np.float32), np.zeros(0, np.uint8), None, cfg) == []
+    planes, assign = detect_planes(np.zeros((0, 3), np.float32), np.zeros(0, np.uint8), None, cfg,
+                                   return_inliers=True)
+    assert planes == [] and assign.shape == (0,)
+    pts, labels, ring = _plane_scan([1.0, 0.0, 0.0], 2.0)
+    assert detect_planes(pts, np.full(len(pts), C.CHAIR, np.uint8), ring, cfg) == []  # no static class
+    few = slice(0, 20)  # fewer points than min_points
+    assert detect_planes(pts[few], labels[few], ring[few], cfg) == []
+    assert detect_planes(pts[:2], labels[:2], None, cfg) == []
+
+
+def test_bad_input_is_a_clear_error():
+    pts, labels, ring = _plane_scan([1.0, 0.0, 0.0], 2.0)
+    with pytest.raises(ValueError, match="labels"):
+        detect_planes(pts, labels[:-1], ring)
+    with pytest.raises(ValueError, match="detector"):
+        detect_planes(pts, labels, ring, PlaneConfig(detector="magic"))
+
+
+def test_open3d_detector_on_a_simulated_scan(scans):
+    frames, instances = scans["office1"]
+    recall, purity = _quality(frames[:1], instances[:1], PlaneConfig(detector="open3d"))
+    assert recall >= 0.6 and purity >= 0.95
+
+
+def test_pipeline_call_signature():
+    """pipeline.process_scan calls detect_planes(points, labels, ring, config.planes, frame=index)."""
+    pts, labels, ring = _plane_scan([0.0, -1.0, 0.0], 4.0)
+    planes = detect_planes(pts, labels, ring, Config().planes, frame=12)
+    assert len(planes) == 1 and planes[0].frame == 12
+
+
+def test_door_splits_a_wall_joined_by_its_lintel():
+    """office1's door wall is two coplanar boxes and a lintel: seen from across the room the lintel joins
+    them into one surface; the see-through door splits it into the two pieces again."""
+    from topometric_ros.sim.scenes import make_scene
+
+    scene = make_scene("office1")
+    pieces = [i for i in range(len(scene.planes)) if scene.instance_class[i] == C.WALL
+              and np.allclose(scene.planes[i], [1, 0, 0, -0.075], atol=1e-3)]
+    frames, instances = simulated_frames("office1", 4, seed=0)
+    for f, inst in zip(frames[2:], instances[2:]):
+        big = [i for i in pieces if np.count_nonzero(inst == i) >= 200]
+        assert len(big) == 2
+        for width, expect in ((0.0, False), (PlaneConfig().opening_width, True)):
+            _, assign = detect_planes(f.points, f.labels, f.ring, PlaneConfig(opening_width=width),
+                                      return_inliers=True)
+            missed = plane_quality(assign, f.labels, inst)["missed"]
+            assert all(i not in missed for i in big) == expect
+
+
+def test_an_occluder_does_not_split_a_wall():
+    """A 1.4 m wide cabinet (class other) in front of a wall hides its foot but nothing is seen through it."""
+    b = SceneBuilder("room", (0.0, 0.0, 10.0, 8.0))
+    b.floor_and_ceiling(3.0)
+    for p0, p1 in (((0, 8), (10, 8)), ((10, 0), (10, 8)), ((0, 0), (10, 0)), ((0, 0), (0, 8))):
+        b.wall(p0, p1, 3.0)
+    b.box([0.2, 3.3, 0.0], [0.8, 4.7, 1.9], C.OTHER)
+    pose = np.eye(4)
+    pose[:3, 3] = [5.0, 4.0, 1.0]
+    scan = Lidar(b.build()).scan(pose, np.random.default_rng(0))
+    _, assign = detect_planes(scan.points, scan.label, scan.ring, return_inliers=True)
+    assert plane_quality(assign, scan.label, scan.instance)["recall"] == 1.0
+    wall = np.flatnonzero((np.abs(scan.points[:, 0] + 5.0 - 0.075) < 0.03) & (scan.label == C.WALL))
+    _, counts = np.unique(assign[wall], return_counts=True)
+    assert counts.max() >= 0.95 * len(wall)  # the occluded wall stays one plane
+
+
+def test_plane_quality_definitions():
+    labels = np.full(1000, C.WALL, np.uint8)
+    instance = np.repeat([0, 1, 2, 3], [400, 300, 250, 50])  # 3 is too small to count
+    assign = np.full(1000, -1)
+    assign[:400] = 0  # instance 0 whole
+    assign[400:500] = 1  # a third of instance 1: not recalled
+    assign[700:950] = 2  # instance 2 whole ...
+    assign[950:960] = 2  # ... plus 10 points of instance 3
+    q = plane_quality(assign, labels, instance)
+    assert q["n_truth"] == 3 and q["n_recalled"] == 2 and q["missed"] == [1]
+    assert q["recall"] == pytest.approx(2 / 3)
+    assert sorted(q["purity"]) == pytest.approx(sorted([1.0, 1.0, 250 / 260]))
+    static_only = plane_quality(assign, np.full(1000, C.CHAIR, np.uint8), instance)
+    assert static_only["n_truth"] == 0 and np.isnan(static_only["recall"])
+
+
+def test_two_parallel_walls_stay_apart():
+    """A corridor: two parallel walls 3 m apart are two planes, not one, even with a generous merge gap."""
+    pts, labels, ring = _plane_scan([0.0, -1.0, 0.0], 1.5, more=[([0.0, 1.0, 0.0], 1.5)])
+    planes = detect_planes(pts, labels, ring, replace(PlaneConfig(), merge_gap=5.0))
+    assert len(planes) == 2
+    assert [round(p.offset, 2) for p in planes] == [1.5, 1.5]
+    assert planes[0].normal @ planes[1].normal < -0.99
+    assert sum(p.count for p in planes) >= 0.95 * len(pts)
