@@ -286,15 +286,9 @@ def _truth(path) -> dict | None:
 
 
 def relative_pose_error(gt: np.ndarray, est: np.ndarray) -> float:
-    """RPE (DESIGN.md, Eq. 4) of (N, 4, 4) poses: metrics.rpe.rpe when present, else the same formula here:
-    mean over consecutive pairs of ‖ΔT_gt (ΔT_est)⁻¹ − I‖_F."""
-    try:
-        from .metrics.rpe import rpe
-    except ImportError:
-        d_gt = geometry.inverse(gt[:-1]) @ gt[1:]
-        d_est = geometry.inverse(est[:-1]) @ est[1:]
-        e = d_gt @ geometry.inverse(d_est)
-        return float(np.mean(np.linalg.norm(e - np.eye(4), axis=(1, 2))))
+    """RPE (DESIGN.md, Eq. 4, metrics.rpe) of (N, 4, 4) sensor poses."""
+    from .metrics.rpe import rpe
+
     return float(rpe(gt, est))
 
 
