@@ -185,3 +185,18 @@ def test_replay_cli_exit_codes(office_bag, tmp_path, capsys):
                      "--segmentation", "labels"]) == 1
     out = capsys.readouterr().out
     assert "ERROR" in out and (tmp_path / "o2" / "windows.json").exists()
+
+
+def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):
+    """The default per-scan/per-window functions (pipeline.process_scan / score_window): finite scores,
+    planes in every window, no alarm in a drift-free stretch (the fixture's drift starts after 20 s)."""
+    bag_path, truth = office_bag
+    config = load_config(overrides={"segmentation.mode": "labels", "health.baseline_windows": 3})
+    res = replay(bag_path, tmp_path / "out", config, ReplayOptions(progress=False, plot=False))
+    assert res.summary["error"] == "" and res.summary["windows"] == 6
+    assert all(ep["start"] > res.windows[-1]["end"] for ep in truth["episodes"])
+    for r in res.windows:
+        assert np.isfinite(r["pne"]) and np.isfinite(r["cpv"]) and r["n_planes"] >= 10
+        assert r["level"] == "OK", r["message"]
+        assert r["rpe"] == pytest.approx(0.0, abs=1e-6)
+        assert r["ms_scans_planes"] > 0  # per-step timings of the pipeline reach the report

@@ -91,7 +91,7 @@ class HealthConfig:
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
     warn_sigma: float = 4.0  # robust z above the baseline median -> WARN
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
-    pne_min_sigma: float = 0.2  # nats, floor of the PNE baseline spread (quiet sites)
+    pne_min_sigma: float = 0.3  # nats, floor of the PNE baseline spread (quiet sites; dev bags: 0.23-0.39 drift-free)
     cpv_min_sigma: float = 0.5  # floor of the ln(CPV) baseline spread (CPV is a variance: compared on a log scale)
     pne_warn: float = 0.0  # nats, absolute PNE limit -> WARN (0 = off; PNE is usually negative)
     pne_error: float = 0.0  # nats, absolute PNE limit -> ERROR (0 = off)
