@@ -14,6 +14,7 @@ rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.exceptions import InvalidParameterValueException  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
@@ -82,7 +83,7 @@ def test_node_publishes_window_diagnostics(ros, office_bag):
             "/odom": peer.create_publisher(Odometry, "/odom", 10),
             "/tf_static": peer.create_publisher(TFMessage, "/tf_static", latched)}
     convert = {"/points": _to_rclpy_cloud, "/odom": _to_rclpy_odom, "/tf_static": _to_rclpy_tf}
-    executor = rclpy.executors.SingleThreadedExecutor()
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     executor.add_node(peer)
     for _ in range(20):  # let discovery settle

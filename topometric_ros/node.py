@@ -141,9 +141,9 @@ class MonitorNode(Node):
         config = self._declare_config_parameters()
         segmenter = None
         if config.segmentation.mode == "network":
-            from .replay import _segmenter
+            from .replay import load_segmenter
 
-            segmenter = _segmenter(config)
+            segmenter = load_segmenter(config)
         self.monitor = Monitor(config, segmenter=segmenter, live=True, on_window=self._on_window)
         self.hardware_id = p["hardware_id"]
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)

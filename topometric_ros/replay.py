@@ -179,7 +179,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if segmenter is None and scan_fn is None and config.segmentation.mode == "network":
-        segmenter = _segmenter(config)
+        segmenter = load_segmenter(config)
     ref: list = []
     rec = _Recorder(out, ref, opt.hardware_id)
     monitor = Monitor(config, scan_fn, window_fn, segmenter, live=speed is not None, on_window=rec.window)
@@ -262,13 +262,14 @@ def load_monitor_config(path=None, overrides=None) -> Config:
     return apply(cfg, overrides) if overrides else cfg
 
 
-def _segmenter(config: Config):
+def load_segmenter(config: Config):
+    """The network (pipeline.default_segmenter, loaded once), or a clear ValueError when it cannot load."""
+    from .pipeline import default_segmenter
+
     try:
-        from .segmentation import Segmenter
-    except ImportError as e:
-        raise ValueError(f"segmentation mode 'network' needs topometric_ros.segmentation ({e}); "
-                         "use segmentation mode 'labels' or 'none'") from None
-    return Segmenter.from_config(config.segmentation)
+        return default_segmenter(config.segmentation)
+    except (RuntimeError, ImportError, FileNotFoundError) as e:
+        raise ValueError(f"{e}") from None
 
 
 def _scan_count(path, topic: str) -> int | None:
