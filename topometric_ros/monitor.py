@@ -196,7 +196,7 @@ class Monitor:
             a = fields.get(key)
             per_point[name] = a[finite].astype(dtype, copy=False) if a is not None and a.ndim == 1 else None
         self.count("nonfinite_points", int((~finite).sum()))
-        return self.add_scan(stamp, pts, received=received, **per_point)
+        return self._accept(stamp, pts, per_point, received, finite=True)
 
     def add_odometry(self, msg: Any, received: float | None = None) -> bool:
         """A nav_msgs/Odometry (pose of its child frame in its parent frame). Bad quaternions are counted."""
@@ -250,8 +250,12 @@ class Monitor:
 
         Non-finite points are removed (counted); an empty, malformed, duplicate scan is dropped (counted).
         Returns True when the scan was accepted (it may still wait for odometry)."""
+        extra = {"labels": labels, "ring": ring, "intensity": intensity}
+        return self._accept(stamp, points, extra, received, finite=False)
+
+    def _accept(self, stamp, points, extra: dict, received, finite: bool) -> bool:
         self.count("scans_in")
-        scan = self._checked_scan(stamp, points, labels, ring, intensity)
+        scan = self._checked_scan(stamp, points, extra, finite)
         if scan is None:
             return False
         self.last_scan_received = float(stamp if received is None else received)
@@ -268,7 +272,8 @@ class Monitor:
         self._resolve_pending()
         return True
 
-    def _checked_scan(self, stamp, points, labels, ring, intensity) -> _Scan | None:
+    def _checked_scan(self, stamp, points, extra: dict, finite: bool) -> _Scan | None:
+        """The scan with non-finite points removed (skipped when ``finite``: already filtered), or None."""
         try:
             stamp = float(stamp)
             pts = np.asarray(points)
@@ -276,18 +281,17 @@ class Monitor:
                 raise ValueError(f"points must be (N, 3) numbers, got shape {pts.shape} {pts.dtype}")
             if not np.isfinite(stamp):
                 raise ValueError(f"scan stamp {stamp} is not finite")
-            extra = {"labels": labels, "ring": ring, "intensity": intensity}
             for name, a in extra.items():
                 if a is not None and len(a) != len(pts):
                     raise ValueError(f"{name} has {len(a)} entries for {len(pts)} points")
         except (ValueError, TypeError) as e:
             self._error("dropped_bad_scan", f"malformed scan: {e}")
             return None
-        finite = np.isfinite(pts).all(axis=1)
-        if not finite.all():
-            self.count("nonfinite_points", int((~finite).sum()))
-            pts = pts[finite]
-            extra = {k: None if a is None else np.asarray(a)[finite] for k, a in extra.items()}
+        keep = None if finite else np.isfinite(pts).all(axis=1)
+        if keep is not None and not keep.all():
+            self.count("nonfinite_points", int((~keep).sum()))
+            pts = pts[keep]
+            extra = {k: None if a is None else np.asarray(a)[keep] for k, a in extra.items()}
         if len(pts) == 0:
             self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}")
             return None
