@@ -108,10 +108,10 @@ def run_detection(out: str | Path, config: Config, scenes: list[str], frames: in
                          "scans_per_s": res.summary["scans_per_s"]})
     n_ep = sum(r["episodes"] for r in rows)
     n_hit = sum(r["detected"] for r in rows)
+    per_10min = 10 * free["false_warn_windows"] / free["minutes"] if free["minutes"] else float("nan")
     table = {"within_windows": within, "window_size": config.window.size, "rows": rows,
              "episodes": n_ep, "detected": n_hit, "detection_rate": n_hit / n_ep if n_ep else float("nan"),
-             "drift_free": free,
-             "false_warns_per_10min": 10 * free["false_warn_windows"] / free["minutes"] if free["minutes"] else float("nan")}
+             "drift_free": free, "false_warns_per_10min": per_10min}
     _write(out, table)
     return table
 

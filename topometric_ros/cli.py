@@ -221,7 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output bag directory (with --split: a parent directory)")
     s.set_defaults(func=cmd_simulate)
 
-    r = sub.add_parser("replay", help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")
+    r = sub.add_parser("replay",
+                       help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--rate", default="max", help="max (default, every window processed), realtime, or a speed factor")
