@@ -200,3 +200,29 @@ def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_pa
         assert r["level"] == "OK", r["message"]
         assert r["rpe"] == pytest.approx(0.0, abs=1e-6)
         assert r["ms_scans_planes"] > 0  # per-step timings of the pipeline reach the report
+
+
+def test_an_odometry_gap_is_reported_stale_in_bag_time(office_bag, tmp_path):
+    """No /odom for 3 s of bag time: one STALE status (bag-time stamped) and the scans in the gap dropped."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+    gap = tmp_path / "gap"
+    t_first = None
+    with bag.BagWriter(gap) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            t = t_ns * 1e-9
+            t_first = t if topic == "/points" and t_first is None else t_first
+            if topic == "/odom" and t_first is not None and 1.0 < t - t_first < 4.0:
+                continue
+            w.write(topic, t, msg)
+    config = cfg(**{"health.stale_after_s": 1.5})
+    res = replay(gap, tmp_path / "out", config, ReplayOptions(progress=False, plot=False), floor_scan, floor_window)
+    msgs = read_diagnostics(tmp_path / "out" / "diagnostics.mcap")
+    stale = [(log_time, arr.status[0]) for _, _, log_time, arr in msgs
+             if arr.status[0].level == 3]
+    assert len(stale) == 1
+    log_time, status = stale[0]
+    assert "no odometry for" in status.message
+    assert 1.0 + 1.5 < log_time * 1e-9 - t_first < 4.0 + 0.5  # in the gap, in bag time
+    assert res.summary["counters"]["dropped_no_pose"] >= 10  # 2.6 s of 5 Hz scans had no odometry
