@@ -2,7 +2,6 @@
 resets, bad input. The per-scan and per-window functions here are cheap real ones (a floor-height spread),
 so the tests are about the plumbing, not the metrics."""
 import os
-import threading
 import time
 
 import numpy as np
@@ -248,9 +247,24 @@ def test_live_close_drains_the_queue_and_stops_the_thread():
     m = Monitor(config(), floor_scan, floor_window, live=True)
     feed(m, 100.0 + np.arange(9) / 5.0)
     assert m.flush(timeout=10)
+    worker = m._thread
+    assert worker.is_alive()
     m.close()
     assert m.counters["scans_processed"] == 9 and m.counters["windows"] == 3
-    assert not any(t.name == "topometric-worker" and t.is_alive() for t in threading.enumerate())
+    assert not worker.is_alive()
+
+
+def test_blocking_live_mode_processes_every_scan_in_order():
+    """replay's mode: the worker thread does the work, the feeder waits when the queue is full, no drops."""
+    slow_scan = lambda f, c, s, i: floor_scan(f, c, s, i, delay=0.005)  # noqa: E731
+    out = []
+    with Monitor(config(**{"window.queue_size": 2}), slow_scan, floor_window, live=True, block=True,
+                 on_window=lambda r, s: out.append(r)) as m:
+        feed(m, 100.0 + np.arange(30) / 5.0)
+        m.flush()
+    c = m.counters
+    assert c["scans_processed"] == 30 and c["dropped_scans"] == 0 and len(out) == 10
+    assert [r.stamps[0] for r in out] == pytest.approx(100.0 + np.arange(0, 30, 3) / 5.0)
 
 
 def test_stale_when_input_stops_in_the_callers_clock():

@@ -10,8 +10,8 @@ scan is processed.
 
 Two modes: ``live=True`` runs the per-scan work in a worker thread behind a bounded queue (when the worker
 falls behind the OLDEST queued scan is dropped and counted, so memory stays flat and the feeder never
-blocks); ``live=False`` (deterministic, for replay and tests) does the work in the caller's thread and
-processes every scan. Bad input (malformed clouds, non-finite points, empty scans, bad quaternions,
+blocks; with ``block=True`` the feeder waits instead, so every scan is processed while reading overlaps
+the work: replay as fast as possible); ``live=False`` does the work in the caller's thread, in order. Bad input (malformed clouds, non-finite points, empty scans, bad quaternions,
 duplicate or backwards stamps) is counted in ``counters`` and skipped; nothing raises.
 """
 from __future__ import annotations
@@ -111,7 +111,7 @@ class Monitor:
 
     def __init__(self, config: Config | None = None, scan_fn: Callable | None = None,
                  window_fn: Callable | None = None, segmenter: Any = None, live: bool = False,
-                 on_window: Callable | None = None, keep_results: int = 1000):
+                 on_window: Callable | None = None, keep_results: int = 1000, block: bool = False):
         from . import pipeline
 
         self.config = config or Config()
@@ -120,6 +120,7 @@ class Monitor:
         self.window_fn = window_fn or pipeline.score_window
         self.segmenter = segmenter
         self.live = live
+        self.block = block  # live: a full queue makes the feeder wait instead of dropping (replay)
         self.on_window = on_window
         self.health = Health(self.config.health)
         self.poses = PoseBuffer(w.pose_horizon_s)
@@ -332,11 +333,14 @@ class Monitor:
             self._process(frame, index, arrived)
             return
         with self._cond:
-            if len(self._queue) >= max(1, self.config.window.queue_size):
+            size = max(1, self.config.window.queue_size)
+            if self.block:
+                self._cond.wait_for(lambda: len(self._queue) < size)
+            elif len(self._queue) >= size:
                 self._queue.popleft()
                 self._counts["dropped_queue_full"] += 1
             self._queue.append((frame, index, arrived))
-            self._cond.notify()
+            self._cond.notify_all()
 
     def _worker(self) -> None:
         while True:

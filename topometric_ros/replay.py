@@ -5,7 +5,8 @@ stamped in bag time; opens in Foxglove and ``ros2 bag``), ``windows.csv`` and ``
 window's metrics, timings, level, reason; the JSON also holds the summary and counters) and
 ``metrics.png`` (PNE and CPV over time with alarm bands, RPE when the bag has ground truth).
 
-Rate ``max`` (default) is deterministic: every scan and every window is processed in order. ``realtime``
+Rate ``max`` (default) is deterministic: every scan and every window is processed in order (the worker
+thread processes while the reader reads on; the reader waits, never drops). ``realtime``
 (or a factor such as 2.0) feeds the monitor at bag speed through its live worker thread, as on a robot.
 A bag that breaks mid-file (truncated) is reported in the summary; what was processed is still written.
 """
@@ -182,7 +183,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
         segmenter = load_segmenter(config)
     ref: list = []
     rec = _Recorder(out, ref, opt.hardware_id)
-    monitor = Monitor(config, scan_fn, window_fn, segmenter, live=speed is not None, on_window=rec.window)
+    # as fast as possible: the worker thread processes every scan in order (the reader waits when it is
+    # ahead), so reading and parsing overlap the per-scan work; real time: a live monitor that drops
+    monitor = Monitor(config, scan_fn, window_fn, segmenter, live=True, block=speed is None, on_window=rec.window)
     ref.append(monitor)
     gt_stamps, gt_poses, notes = [], [], []
     error, n_scans, first, last = "", 0, None, None
