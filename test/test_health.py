@@ -19,7 +19,7 @@ def result(pne=1.0, cpv=0.01, n_planes=20, t=0.0):
 def learned(cfg=None, rng=None, n=10):
     """A Health with a baseline from n windows (PNE ~ 1 ± 0.5 nats, CPV ~ 0.01 m² × e^(±0.6))."""
     rng = rng or np.random.default_rng(0)
-    h = Health(cfg or HealthConfig(baseline_windows=n))
+    h = Health(cfg or HealthConfig(baseline_windows=n, warn_sigma=4.0, error_sigma=8.0))
     for _ in range(n):
         r = result(1.0 + 0.5 * rng.standard_normal(), 0.01 * np.exp(0.6 * rng.standard_normal()))
         h.assess(r)
@@ -86,7 +86,7 @@ def test_alarms_do_not_teach_the_baseline():
 
 def test_quiet_sites_get_a_floor_on_the_spread():
     """A perfectly constant baseline (MAD 0) must not make every tiny wobble an alarm."""
-    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3))
+    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3, warn_sigma=4.0))
     for _ in range(5):
         h.assess(result(-9.0, 1e-5))
     assert h.baseline("pne") == (-9.0, pytest.approx(0.2))

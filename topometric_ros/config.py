@@ -89,7 +89,7 @@ class HealthConfig:
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
-    warn_sigma: float = 4.0  # robust z above the baseline median -> WARN
+    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (held-out sim: 4 -> 5 false WARN/10 min, 5 -> 2)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
     pne_min_sigma: float = 0.3  # nats, floor of the PNE baseline spread (quiet sites; dev bags: 0.23-0.39 drift-free)
     cpv_min_sigma: float = 0.5  # floor of the ln(CPV) baseline spread (CPV is a variance: compared on a log scale)
