@@ -2,7 +2,7 @@
 import importlib
 import sys
 
-ALL = ["sim", "planes", "metrics", "baselines", "seg"]
+ALL = ["sim", "planes", "metrics", "baselines", "seg", "replay"]
 
 for name in sys.argv[1:] or ALL:
     print(f"== {name}")

@@ -1,4 +1,4 @@
-"""The ``topometric`` command: simulate, demo (and later train, replay, evaluate, bench)."""
+"""The ``topometric`` command: simulate, replay, alarms, demo (and later train, evaluate, bench)."""
 from __future__ import annotations
 
 import argparse
@@ -44,7 +44,57 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _monitor_config(args: argparse.Namespace):
+    """Config from --config, then --set KEY=VALUE pairs, then the dedicated flags."""
+    import yaml
+
+    from .replay import load_monitor_config
+
+    over = {}
+    for item in getattr(args, "set", None) or []:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        over[key.strip()] = yaml.safe_load(value)
+    if getattr(args, "window_size", None):
+        over["window.size"] = args.window_size
+    if getattr(args, "segmentation", None):
+        over["segmentation.mode"] = args.segmentation
+    return load_monitor_config(getattr(args, "config", None), over)
+
+
+def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None) -> None:
+    p.add_argument("--config", help="YAML config (plain or ROS 2 parameter file, e.g. config/topometric.yaml)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config leaf, e.g. window.size=10")
+    p.add_argument("--window-size", type=int, help="scans per window (paper: 5, 10, 15)")
+    p.add_argument("--segmentation", choices=("network", "labels", "none"), default=segmentation_default,
+                   help="where labels come from (labels = the bag's ground-truth label field)")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .replay import ReplayOptions, format_table, replay
+
+    opt = ReplayOptions(points_topic=args.points_topic, odom_topic=args.odom_topic, gt_topic=args.gt_topic,
+                        rate=args.rate, plot=not args.no_plot, progress=not args.quiet)
+    res = replay(args.bag, args.out, _monitor_config(args), opt)
+    print(format_table(res.windows, res.summary))
+    print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
+          + ("" if args.no_plot else ", metrics.png"))
+    return 1 if res.summary["error"] else 0
+
+
+def cmd_alarms(args: argparse.Namespace) -> int:
+    from .alarms import format_detection, run_detection
+
+    table = run_detection(args.out, _monitor_config(args), args.scene, frames=args.frames, free_bags=args.free_bags,
+                          free_frames=args.free_frames, within=args.within, progress=not args.quiet)
+    print(format_detection(table))
+    print(f"wrote {Path(args.out) / 'detection.json'}, detection.csv, detection.png")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
+    from .replay import ReplayOptions, format_table, replay
     from .sim.drift import DriftSpec
     from .sim.writer import SimConfig, format_summary, simulate
 
@@ -56,7 +106,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         shutil.rmtree(bag_dir)
     cfg = SimConfig(scene="garage", frames=args.frames, rate=5.0, drift=DriftSpec.parse("rt:1.5"))
     print(format_summary(simulate(cfg, bag_dir)))
-    return 0
+    res = replay(bag_dir, out / "replay", _monitor_config(args), ReplayOptions())
+    print()
+    print(format_table(res.windows, res.summary))
+    print(f"plot: {out / 'replay' / 'metrics.png'}; diagnostics: {out / 'replay' / 'diagnostics.mcap'}")
+    return 1 if res.summary["error"] else 0
 
 
 def _floats(text: str) -> tuple:
@@ -240,9 +294,34 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", default="out/eval_seg")
     e.set_defaults(func=cmd_eval_seg)
 
-    d = sub.add_parser("demo", help="the main job on simulated data")
+    r = sub.add_parser("replay",
+                       help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")
+    r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--rate", default="max", help="max (default, every window processed), realtime, or a speed factor")
+    r.add_argument("--points-topic", default="/points")
+    r.add_argument("--odom-topic", default="/odom")
+    r.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
+    r.add_argument("--no-plot", action="store_true")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_monitor_args(r)
+    r.set_defaults(func=cmd_replay)
+
+    a = sub.add_parser("alarms", help="drift-alarm detection table on held-out simulated bags (r/t/rt x 1/1.5/2)")
+    a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
+    a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"])
+    a.add_argument("--frames", type=int, default=400, help="scans per drift bag (default 400 = 80 s)")
+    a.add_argument("--free-bags", type=int, default=4, help="drift-free bags (default 4)")
+    a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (default 750 = 150 s)")
+    a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
+    a.add_argument("--quiet", action="store_true")
+    _add_monitor_args(a, "labels")
+    a.set_defaults(func=cmd_alarms)
+
+    d = sub.add_parser("demo", help="simulate a garage bag with a drift episode, replay it, print the alarms")
     d.add_argument("--out", default="out/demo")
     d.add_argument("--frames", type=int, default=150)
+    _add_monitor_args(d, "labels")
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("evaluate", help="the paper's noise experiment: every metric against RPE, correlations, timing")

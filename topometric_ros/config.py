@@ -22,6 +22,9 @@ class WindowConfig:
     max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
     queue_size: int = 8  # scans waiting for the worker; when full the oldest is dropped
     voxel_size: float = 0.0  # m, voxel downsample per scan before segmentation (0 = off)
+    pose_timeout_s: float = 2.0  # s of scan time a scan may wait for odometry before it is dropped
+    pose_horizon_s: float = 30.0  # s of odometry kept for the lookup
+    extrinsic: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # odom child -> sensor: x y z (m) qx qy qz qw; /tf_static wins when it has it
 
 
 @dataclass
@@ -88,6 +91,17 @@ class HealthConfig:
     """Drift alarms (health.py)."""
 
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
+    baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
+    baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
+    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (held-out sim: 4 -> 5 false WARN/10 min, 5 -> 2)
+    error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
+    pne_min_sigma: float = 0.3  # nats, floor of the PNE baseline spread (quiet sites; dev bags: 0.23-0.39 drift-free)
+    cpv_min_sigma: float = 0.5  # floor of the ln(CPV) baseline spread (CPV is a variance: compared on a log scale)
+    pne_warn: float = 0.0  # nats, absolute PNE limit -> WARN (0 = off; PNE is usually negative)
+    pne_error: float = 0.0  # nats, absolute PNE limit -> ERROR (0 = off)
+    cpv_warn: float = 0.0  # m², absolute CPV limit -> WARN (0 = off)
+    cpv_error: float = 0.0  # m², absolute CPV limit -> ERROR (0 = off)
+    min_planes: int = 3  # fewer planes than this in a window -> WARN (metrics unreliable)
 
 
 @dataclass

@@ -1,13 +1,17 @@
-"""Frames and the sliding window of scans.
+"""Frames, the odometry buffer and the sliding window of scans.
 
-A Frame is one scan with the pose SLAM gave it. (The sliding window, pose buffer and interpolation by
-stamp arrive with the monitor.)
+A Frame is one scan with the pose SLAM gave it. PoseBuffer gives a scan the odometry pose interpolated at
+its stamp; SlidingWindow groups processed scans into windows of ``size`` every ``step`` scans.
 """
 from __future__ import annotations
 
+import bisect
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+
+from . import geometry
 
 
 @dataclass
@@ -30,3 +34,116 @@ class Frame:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+class PoseBuffer:
+    """Odometry poses by stamp, for looking up the pose of a scan at its own stamp (TF-free).
+
+    Poses are 4×4 child-to-parent (e.g. base_link-to-map); stamps in seconds and strictly increasing.
+    Only the last ``horizon_s`` seconds are kept, so memory stays bounded.
+    """
+
+    def __init__(self, horizon_s: float = 30.0):
+        self.horizon_s = float(horizon_s)
+        self._stamps: list[float] = []
+        self._poses: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def newest(self) -> float | None:
+        """Stamp (s) of the newest pose, None when empty."""
+        return self._stamps[-1] if self._stamps else None
+
+    @property
+    def oldest(self) -> float | None:
+        return self._stamps[0] if self._stamps else None
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._poses.clear()
+
+    def add(self, stamp: float, pose: np.ndarray) -> str:
+        """Append a pose. Returns 'ok', 'duplicate' (same stamp as the newest: ignored) or 'backwards'
+        (older than the newest: the buffer restarts from this pose, a time jump)."""
+        stamp = float(stamp)
+        status = "ok"
+        if self._stamps and stamp == self._stamps[-1]:
+            return "duplicate"
+        if self._stamps and stamp < self._stamps[-1]:
+            self.clear()
+            status = "backwards"
+        self._stamps.append(stamp)
+        self._poses.append(np.asarray(pose, np.float64))
+        cut = 0
+        while cut < len(self._stamps) - 2 and self._stamps[cut + 1] < stamp - self.horizon_s:
+            cut += 1
+        if cut:
+            del self._stamps[:cut], self._poses[:cut]
+        return status
+
+    def lookup(self, stamp: float, max_gap_s: float) -> np.ndarray | None:
+        """Pose at ``stamp`` interpolated between the poses around it (slerp + linear), or None when the
+        stamp is outside the buffer or either neighbour is more than ``max_gap_s`` away."""
+        if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
+            return None
+        i = bisect.bisect_right(self._stamps, stamp) - 1
+        j = min(i + 1, len(self._stamps) - 1)
+        if stamp - self._stamps[i] > max_gap_s or self._stamps[j] - stamp > max_gap_s:
+            return None
+        if i == j or stamp == self._stamps[i]:
+            return self._poses[i].copy()
+        poses, _ = geometry.interpolate_poses(np.array(self._stamps[i:j + 1]), np.stack(self._poses[i:j + 1]),
+                                              np.array([stamp]))
+        return poses[0]
+
+
+class SlidingWindow:
+    """Consecutive items (processed scans) grouped into windows of ``size`` that start every ``step`` items.
+
+    ``push`` returns the completed window (a list) when the pushed item is a window's last, else None.
+    An item whose stamp is not newer than the previous one (bag loop, sim time reset, duplicate) restarts
+    the window: the partial window is discarded and counted in ``discarded``.
+    """
+
+    def __init__(self, size: int, step: int = 0):
+        if size < 1:
+            raise ValueError(f"window size must be >= 1, got {size}")
+        if step < 0:
+            raise ValueError(f"window step must be >= 0 (0 = size), got {step}")
+        self.size, self.step = int(size), int(step or size)
+        self._items: deque = deque()
+        self._skip = 0  # items still to skip before the next window starts (step > size)
+        self._last_stamp: float | None = None
+        self.discarded = 0  # partial windows thrown away by resets
+        self.resets = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def reset(self) -> None:
+        if self._items:
+            self.discarded += 1
+        self._items.clear()
+        self._skip = 0
+        self._last_stamp = None
+
+    def push(self, item, stamp: float) -> list | None:
+        stamp = float(stamp)
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            self.resets += 1
+            self.reset()
+        self._last_stamp = stamp
+        if self._skip:
+            self._skip -= 1
+            return None
+        self._items.append(item)
+        if len(self._items) < self.size:
+            return None
+        window = list(self._items)
+        drop = min(self.step, self.size)
+        for _ in range(drop):
+            self._items.popleft()
+        self._skip = self.step - drop
+        return window

@@ -1,0 +1,150 @@
+"""health.py: robust baseline, sigma and absolute alarms, STALE, and the diagnostics messages."""
+import copy
+
+import numpy as np
+import pytest
+
+from topometric_ros import bag
+from topometric_ros.config import HealthConfig
+from topometric_ros.health import (STATUS_NAME, Health, diagnostic_array, diagnostic_status, from_scale,
+                                   window_values)
+from topometric_ros.pipeline import WindowResult
+
+
+def result(pne=1.0, cpv=0.01, n_planes=20, t=0.0):
+    return WindowResult([t, t + 0.8], pne=pne, cpv=cpv, n_planes=n_planes, n_groups=5,
+                        timings={"latency": 12.5})
+
+
+def learned(cfg=None, rng=None, n=10):
+    """A Health with a baseline from n windows (PNE ~ 1 ± 0.5 nats, CPV ~ 0.01 m² × e^(±0.6))."""
+    rng = rng or np.random.default_rng(0)
+    h = Health(cfg or HealthConfig(baseline_windows=n, warn_sigma=4.0, error_sigma=8.0))
+    for _ in range(n):
+        r = result(1.0 + 0.5 * rng.standard_normal(), 0.01 * np.exp(0.6 * rng.standard_normal()))
+        h.assess(r)
+    return h
+
+
+def test_learning_then_ok():
+    h = Health(HealthConfig(baseline_windows=3))
+    r = result()
+    h.assess(r)
+    assert r.level == "OK" and "learning baseline (1/3" in r.message
+    h = learned()
+    r = result(1.1, 0.011)
+    assert h.assess(r).level == "OK"
+    assert r.message.startswith("consistent")
+
+
+def test_rotation_drift_raises_pne_alarm_with_sigma_reason():
+    h = learned()
+    med, sigma = h.baseline("pne")
+    r = result(pne=med + 5 * sigma)
+    a = h.assess(r)
+    assert r.level == "WARN" and a.z["pne"] == pytest.approx(5.0)
+    assert r.message == "rotation drift: PNE 5.0σ above baseline"
+    r = result(pne=med + 9 * sigma)
+    assert h.assess(r).level == "ERROR"
+
+
+def test_translation_drift_raises_cpv_alarm():
+    h = learned()
+    med, sigma = h.baseline("cpv")  # on the ln scale
+    r = result(cpv=float(np.exp(med + 4.5 * sigma)))
+    a = h.assess(r)
+    assert r.level == "WARN" and "translation/rotation drift: CPV 4.5σ" in r.message
+    assert a.warn_at["cpv"] == pytest.approx(from_scale("cpv", med + 4 * sigma))
+
+
+def test_alarm_level_is_monotonic_in_the_metric():
+    h = learned()
+    med, sigma = h.baseline("pne")
+    levels = []
+    for k in np.linspace(0, 12, 25):
+        fresh = copy.deepcopy(h)
+        levels.append({"OK": 0, "WARN": 1, "ERROR": 2}[fresh.assess(result(pne=med + k * sigma)).level])
+    assert levels == sorted(levels) and levels[0] == 0 and levels[-1] == 2
+
+
+def test_a_ramp_does_not_creep_into_the_baseline():
+    """Drift that builds up over tens of windows is still caught: only calm windows (z < warn/2) teach."""
+    h = learned()
+    med, sigma = h.baseline("pne")
+    levels = [h.assess(result(pne=med + 0.5 * k * sigma)).level for k in range(40)]  # up to 20σ in 40 windows
+    assert levels[-1] == "ERROR" and h.baseline("pne")[0] < med + 2 * sigma
+
+
+def test_alarms_do_not_teach_the_baseline():
+    h = learned()
+    before = h.baseline("pne")
+    for _ in range(100):
+        h.assess(result(pne=before[0] + 20 * before[1]))
+    assert h.baseline("pne") == before
+    assert h.assess(result(pne=before[0] + 20 * before[1])).level == "ERROR"  # drift never becomes normal
+
+
+def test_quiet_sites_get_a_floor_on_the_spread():
+    """A perfectly constant baseline (MAD 0) must not make every tiny wobble an alarm."""
+    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3, warn_sigma=4.0))
+    for _ in range(5):
+        h.assess(result(-9.0, 1e-5))
+    assert h.baseline("pne") == (-9.0, pytest.approx(0.2))
+    assert h.baseline("cpv") == (pytest.approx(np.log(1e-5)), pytest.approx(0.3))
+    assert h.assess(result(-8.5, 1.5e-5)).level == "OK"  # 2.5σ, ln 1.5 = 0.4 -> 1.4σ
+    assert h.assess(result(-8.1, 1e-5)).level == "WARN"  # 4.5σ
+
+
+def test_cpv_is_scale_free():
+    """The same relative rise of CPV alarms the same, whatever the site's CPV level (log scale)."""
+    levels = []
+    for scale in (1e-6, 1e-3, 1.0):
+        h = Health(HealthConfig(baseline_windows=10))
+        for r in [result(1.0, 0.01 * scale * f) for f in (1, 1.2, 0.8, 1.1, 0.9)] * 2:
+            h.assess(r)
+        levels.append([h.assess(result(1.0, 0.01 * scale * f)).level for f in (1.5, 5, 100)])
+    assert levels[0] == levels[1] == levels[2] and levels[0][-1] != "OK"
+
+
+def test_absolute_limits_apply_from_the_first_window():
+    h = Health(HealthConfig(pne_warn=2.0, pne_error=3.0, cpv_error=0.05))  # pne_warn 0 would mean off
+    r = result(pne=2.5)
+    h.assess(r)
+    assert r.level == "WARN" and "above limit 2" in r.message
+    r = result(cpv=0.06)
+    assert h.assess(r).level == "ERROR"
+
+
+def test_undefined_metrics_and_few_planes_warn():
+    h = learned()
+    r = result(pne=float("nan"))
+    assert h.assess(r).level == "WARN" and "undefined" in r.message
+    r = result(n_planes=1)
+    assert h.assess(r).level == "WARN" and "too few planes" in r.message
+
+
+def test_stale_in_any_clock():
+    h = Health(HealthConfig(stale_after_s=5.0))
+    assert h.stale(100.0, 99.0, 99.5) is None
+    level, why = h.stale(106.0, 100.0, 105.9)
+    assert level == "STALE" and why == "no scans for 6.0 s"
+    assert h.stale(50.0, 100.0, 100.0) is None  # sim clock jumped back: not stale
+    assert "no odometry yet" in h.stale(0.0, 0.0, None)[1]
+
+
+def test_diagnostics_messages_round_trip_through_cdr():
+    types = bag.msg_types()
+    r = result(pne=1.234567891, cpv=0.0123)
+    r.level, r.message = "WARN", "rotation drift: PNE 5.0σ above baseline"
+    values = window_values(r, {"dropped_windows": 2, "scans_in": 10}, {"rpe_estimate": 0.5})
+    assert values["pne"] == "1.23457" and values["dropped_windows"] == "2" and values["window_end"] == "0.8"
+    status = diagnostic_status(types, r.level, r.message, values, hardware_id="velodyne")
+    arr = diagnostic_array(types, 1_700_000_000.25, [status])
+    store = bag.typestore()
+    back = store.deserialize_cdr(store.serialize_cdr(arr, arr.__msgtype__), arr.__msgtype__)
+    assert back.header.stamp.sec == 1_700_000_000 and abs(back.header.stamp.nanosec - 250_000_000) < 1000
+    s = back.status[0]
+    assert s.level == 1 and s.name == STATUS_NAME and s.hardware_id == "velodyne"
+    assert {kv.key: kv.value for kv in s.values}["rpe_estimate"] == "0.5"
+    with pytest.raises(ValueError):
+        diagnostic_status(types, "BAD", "", {})

@@ -1,0 +1,276 @@
+"""Monitor: pose lookup by stamp, waiting and dropping rules, bounded queue with a real worker thread, time
+resets, bad input. The per-scan and per-window functions here are cheap real ones (a floor-height spread),
+so the tests are about the plumbing, not the metrics."""
+import os
+import time
+
+import numpy as np
+import pytest
+
+from topometric_ros import bag, geometry
+from topometric_ros.cloud import make_cloud, rosbags_types
+from topometric_ros.config import load_config
+from topometric_ros.monitor import Monitor, StaticTransforms
+from topometric_ros.pipeline import ProcessedScan, WindowResult
+
+SENSOR_HEIGHT = 1.0
+
+
+def floor_scan(frame, config, segmenter=None, index=-1, delay=0.0):
+    """Per-scan work: the scan's points in the MAP frame (uses the pose the monitor gave the scan)."""
+    if delay:
+        time.sleep(delay)
+    world = geometry.transform_points(frame.pose, frame.points.astype(np.float64))
+    return ProcessedScan(frame.stamp, frame.pose, [], points=world, index=index)
+
+
+def floor_window(scans, config):
+    """Per-window score: spread (m) of the floor height across the window; 0 when every pose is right."""
+    heights = np.array([s.points[:, 2].mean() for s in scans])
+    return WindowResult([s.stamp for s in scans], pne=0.0, cpv=float(heights.std()), n_planes=len(scans),
+                        n_groups=1)
+
+
+def floor_points(n=200, rng=None):
+    """Points of the floor z = 0 seen from a sensor SENSOR_HEIGHT above it (sensor frame, float32)."""
+    rng = rng or np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, size=(n, 2))
+    return np.column_stack([xy, np.full(n, -SENSOR_HEIGHT)]).astype(np.float32)
+
+
+def config(**over):
+    base = {"window.size": 3, "window.pose_wait_s": 0.05, "window.max_pose_gap_s": 0.2,
+            "window.extrinsic": [0.0, 0.0, SENSOR_HEIGHT, 0.0, 0.0, 0.0, 1.0], "health.baseline_windows": 2,
+            "health.min_planes": 0}
+    base.update(over)
+    return load_config(overrides=base)
+
+
+def base_pose(t):
+    """Ground-truth base_link pose: moving along x at 1 m/s on the floor, climbing 0 m."""
+    return geometry.yaw_pose(t, 0.5 * t, 0.0, 0.1 * t)
+
+
+def feed(m, t_scans, odom_rate=20.0, pose_fn=base_pose, odom_offset=0.013):
+    """Interleave odometry (at odom_rate, offset from scans) and scans as a driver would."""
+    t_odom = np.arange(t_scans[0] - 0.5 + odom_offset, t_scans[-1] + 0.5, 1 / odom_rate)
+    k = 0
+    for t in t_scans:
+        while k < len(t_odom) and t_odom[k] <= t + 0.06:
+            m.add_pose(t_odom[k], pose_fn(t_odom[k]))
+            k += 1
+        m.add_scan(t, floor_points())
+    for j in range(k, len(t_odom)):
+        m.add_pose(t_odom[j], pose_fn(t_odom[j]))
+
+
+def test_deterministic_windows_with_interpolated_poses_and_extrinsic():
+    out = []
+    m = Monitor(config(), floor_scan, floor_window, on_window=lambda r, s: out.append((r, s)))
+    feed(m, 100.0 + np.arange(12) / 5.0)
+    m.flush()
+    assert len(out) == 4 and m.counters["windows"] == 4
+    for result, scans in out:
+        assert result.cpv < 1e-6  # right poses, right extrinsic: the floor stays at z = 0
+        for s in scans:
+            np.testing.assert_allclose(s.pose, base_pose(s.stamp) @ geometry.make_pose(np.eye(3), [0, 0, 1]),
+                                       atol=1e-9)
+    assert [r.stamps[0] for r, _ in out] == pytest.approx(100.0 + np.array([0, 3, 6, 9]) / 5.0)
+    c = m.counters
+    assert c["scans_in"] == 12 and c["scans_processed"] == 12 and c["dropped_scans"] == 0
+
+
+def test_a_wrong_extrinsic_shows_as_inconsistency():
+    """Control for the test above: without the 1 m sensor height the window still agrees (rigid), but
+    a pose error in one scan does not."""
+    bump = lambda t: base_pose(t) @ geometry.make_pose(np.eye(3), [0, 0, 0.3 if 100.55 < t < 100.65 else 0])
+    out = []
+    m = Monitor(config(), floor_scan, floor_window, on_window=lambda r, s: out.append(r))
+    feed(m, 100.0 + np.arange(6) / 5.0, pose_fn=bump)
+    m.flush()
+    assert out[0].cpv < 1e-6 and out[1].cpv > 0.05  # scan at 100.6 s sits 0.3 m high
+
+
+def test_scans_wait_for_odometry_and_are_dropped_without_it():
+    m = Monitor(config(), floor_scan, floor_window)
+    m.add_pose(0.0, base_pose(0.0))
+    m.add_scan(0.1, floor_points())
+    assert m.pending_length == 1 and m.counters["scans_processed"] == 0  # no odometry past 0.1 + wait yet
+    m.add_pose(0.2, base_pose(0.2))
+    assert m.pending_length == 0 and m.counters["scans_processed"] == 1
+    m.add_pose(2.0, base_pose(2.0))  # 1.8 s hole in the odometry
+    m.add_scan(1.0, floor_points())
+    m.add_pose(2.1, base_pose(2.1))
+    assert m.counters["dropped_no_pose"] == 1
+    # odometry stops: scans wait until pose_timeout_s of scan time, then are dropped and counted
+    for t in 3.0 + np.arange(15) / 5:
+        m.add_scan(t, floor_points())
+    assert m.counters["dropped_no_pose"] >= 1 + 15 - int(m.config.window.pose_timeout_s * 5) - 1
+    assert m.pending_length <= m.config.window.pose_timeout_s * 5 + 1
+    m.flush()
+    assert m.pending_length == 0 and m.counters["dropped_no_pose"] == 16
+
+
+def test_extrinsic_from_tf_static_wins_over_config():
+    types = rosbags_types(bag.typestore())
+    m = Monitor(config(**{"window.extrinsic": [0.0] * 6 + [1.0]}), floor_scan, floor_window)
+    m.add_tf_static(bag.make_tf(0.0, geometry.make_pose(np.eye(3), [0, 0, SENSOR_HEIGHT]), "base_link", "velodyne"))
+    assert m.extrinsic_source == "config"  # frames not known yet
+    m.add_odometry(bag.make_odometry(0.0, base_pose(0.0), "map", "base_link"))
+    pts = floor_points()
+    m.add_cloud(make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, 0.05, "velodyne", types))
+    assert m.extrinsic_source == "tf_static"
+    np.testing.assert_allclose(m.extrinsic[:3, 3], [0, 0, SENSOR_HEIGHT])
+
+
+def test_static_transform_chains_compose():
+    tf = StaticTransforms()
+    a = geometry.yaw_pose(1.0, 0.0, 0.0, np.pi / 2)
+    b = geometry.yaw_pose(0.0, 2.0, 0.5, 0.0)
+    tf.add_message(bag.make_tf(0.0, a, "base_link", "mount"))
+    tf.add_message(bag.make_tf(0.0, b, "/mount", "velodyne"))
+    np.testing.assert_allclose(tf.lookup("base_link", "velodyne"), a @ b, atol=1e-12)
+    assert tf.lookup("velodyne", "base_link") is None
+
+
+def test_backwards_stamps_reset_the_window_cleanly():
+    out = []
+    m = Monitor(config(), floor_scan, floor_window, on_window=lambda r, s: out.append(r))
+    feed(m, 100.0 + np.arange(5) / 5.0)  # one window + 2 scans of a second
+    feed(m, 10.0 + np.arange(6) / 5.0)  # bag loop / sim time reset
+    m.flush()
+    c = m.counters
+    assert c["time_resets"] >= 1 and c["windows_discarded"] == 1
+    assert len(out) == 3
+    assert all(np.all(np.diff(r.stamps) > 0) for r in out)  # no window mixes the two time lines
+    assert all(r.cpv < 1e-6 for r in out)
+
+
+def test_bad_input_is_counted_and_survived():
+    m = Monitor(config(), floor_scan, floor_window)
+    types = rosbags_types(bag.typestore())
+    pts = floor_points()
+    cloud = make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, 1.0, "velodyne", types)
+    cloud.data = cloud.data[:-5]  # truncated buffer
+    assert not m.add_cloud(cloud)
+    assert not m.add_cloud(object())  # not a cloud at all
+    assert not m.add_scan(1.0, np.zeros((0, 3)))  # empty
+    assert not m.add_scan(1.0, np.full((10, 3), np.nan))  # nothing finite
+    assert not m.add_scan(1.0, np.zeros((10, 2)))  # wrong shape
+    assert not m.add_scan(1.0, pts, labels=np.zeros(3, np.uint8))  # misaligned labels
+    assert not m.add_scan(float("nan"), pts)
+    assert m.counters["dropped_bad_scan"] == 7
+    with_nan = pts.copy()
+    with_nan[:5] = np.inf
+    with_nan[5:8, 1] = np.nan
+    assert m.add_scan(2.0, with_nan)
+    assert m.counters["nonfinite_points"] == 8 + 10
+    assert not m.add_scan(2.0, pts)  # duplicate stamp
+    assert m.counters["dropped_duplicate"] == 1
+    odom = bag.make_odometry(2.0, base_pose(2.0))
+    q = odom.pose.pose.orientation
+    q.x, q.y, q.z, q.w = 2 * q.x, 2 * q.y, 2 * q.z, 2 * q.w  # non-unit quaternion: normalised, accepted
+    assert m.add_odometry(odom)
+    zero = bag.make_odometry(2.1, base_pose(2.1))
+    zero.pose.pose.orientation.w = 0.0
+    zero.pose.pose.orientation.x = zero.pose.pose.orientation.y = zero.pose.pose.orientation.z = 0.0
+    assert not m.add_odometry(zero)
+    assert not m.add_pose(2.2, np.full((4, 4), np.nan))
+    assert not m.add_pose(2.3, np.diag([2.0, 1.0, 1.0, 1.0]))  # not a rotation
+    assert m.counters["bad_poses"] == 3
+    assert not m.add_pose(2.0, base_pose(2.0))  # duplicate odometry stamp
+    assert m.counters["duplicate_poses"] == 1
+    assert m.last_error
+
+
+def test_a_failing_scan_function_is_counted_not_raised():
+    def flaky(frame, cfg, seg, index):
+        if index % 2:
+            raise RuntimeError("boom")
+        return floor_scan(frame, cfg, seg, index)
+
+    m = Monitor(config(), flaky, floor_window)
+    feed(m, 100.0 + np.arange(8) / 5.0)
+    m.flush()
+    assert m.counters["scan_errors"] == 4 and m.counters["scans_processed"] == 4
+    assert "boom" in m.last_error
+
+
+def rss_bytes():
+    """Resident set size of this process (Linux /proc)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def test_live_worker_drops_oldest_keeps_memory_flat_and_never_blocks_the_feeder():
+    """Feed scans at 4x the worker's speed with a real worker thread."""
+    work_s = 0.02
+    slow_scan = lambda f, c, s, i: floor_scan(f, c, s, i, delay=work_s)  # noqa: E731
+    results = []
+    m = Monitor(config(**{"window.queue_size": 4}), slow_scan, floor_window, live=True,
+                on_window=lambda r, s: results.append(r))
+    n = 400
+    t_scans = 100.0 + np.arange(n) * 0.2  # stamps at 5 Hz, but fed at 4x the worker's rate
+    big = np.random.default_rng(0).normal(size=(20000, 3)).astype(np.float32)
+    big[:, 2] = -SENSOR_HEIGHT
+    feed_times, mem, max_queue = [], [], 0
+    k = 0
+    t_odom = np.arange(t_scans[0] - 0.5, t_scans[-1] + 0.5, 0.05)
+    start = time.perf_counter()
+    for i, t in enumerate(t_scans):
+        while t_odom[k] <= t + 0.1:
+            m.add_pose(t_odom[k], base_pose(t_odom[k]))
+            k += 1
+        t0 = time.perf_counter()
+        m.add_scan(t, big)
+        feed_times.append(time.perf_counter() - t0)
+        max_queue = max(max_queue, m.queue_length)
+        if i in (100, n - 1):
+            mem.append(rss_bytes())
+        time.sleep(max(0.0, start + (i + 1) * work_s / 4 - time.perf_counter()))  # 4x the worker's rate
+    fed_s = time.perf_counter() - start
+    m.flush(timeout=10)
+    m.close()
+    c = m.counters
+    assert max_queue <= 4
+    # the worker can only have done fed_s / work_s scans while fed; the rest were dropped and counted
+    assert c["scans_processed"] <= fed_s / work_s + 4 + 2
+    assert c["dropped_queue_full"] > 0
+    assert c["scans_processed"] + c["dropped_queue_full"] + c["dropped_no_pose"] == n
+    assert c["windows"] == len(results) >= 1
+    assert mem[1] - mem[0] < 0.2 * (n - 100) * big.nbytes  # flat: 300 more scans fed, RSS about the same
+    assert np.median(feed_times) < work_s / 4  # enqueueing never waits for the worker
+    assert max(feed_times) < 10 * work_s
+
+
+def test_live_close_drains_the_queue_and_stops_the_thread():
+    m = Monitor(config(), floor_scan, floor_window, live=True)
+    feed(m, 100.0 + np.arange(9) / 5.0)
+    assert m.flush(timeout=10)
+    worker = m._thread
+    assert worker.is_alive()
+    m.close()
+    assert m.counters["scans_processed"] == 9 and m.counters["windows"] == 3
+    assert not worker.is_alive()
+
+
+def test_blocking_live_mode_processes_every_scan_in_order():
+    """replay's mode: the worker thread does the work, the feeder waits when the queue is full, no drops."""
+    slow_scan = lambda f, c, s, i: floor_scan(f, c, s, i, delay=0.005)  # noqa: E731
+    out = []
+    with Monitor(config(**{"window.queue_size": 2}), slow_scan, floor_window, live=True, block=True,
+                 on_window=lambda r, s: out.append(r)) as m:
+        feed(m, 100.0 + np.arange(30) / 5.0)
+        m.flush()
+    c = m.counters
+    assert c["scans_processed"] == 30 and c["dropped_scans"] == 0 and len(out) == 10
+    assert [r.stamps[0] for r in out] == pytest.approx(100.0 + np.arange(0, 30, 3) / 5.0)
+
+
+def test_stale_when_input_stops_in_the_callers_clock():
+    m = Monitor(config(**{"health.stale_after_s": 2.0}), floor_scan, floor_window)
+    assert m.stale(0.0)[0] == "STALE"  # nothing yet
+    feed(m, 50.0 + np.arange(3) / 5.0)
+    assert m.stale(51.0) is None
+    level, why = m.stale(53.0)
+    assert level == "STALE" and "scans" in why

@@ -1,0 +1,228 @@
+"""replay.py: a simulated bag through the Monitor -> diagnostics.mcap (decoded with the independent
+mcap-ros2-support decoder), windows.csv/.json, metrics.png; truncated bags; real-time mode.
+
+Where the metrics are not the point, the per-scan/per-window functions are a cheap real score (the spread
+of the floor height across the window, from the bag's ground-truth labels)."""
+import copy
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from topometric_ros import classes, geometry
+from topometric_ros.bag import BagError
+from topometric_ros.config import load_config
+from topometric_ros.pipeline import ProcessedScan, WindowResult
+from topometric_ros.replay import ReplayOptions, relative_pose_error, replay
+
+mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
+
+
+def floor_scan(frame, config, segmenter=None, index=-1):
+    floor = frame.points[frame.labels == classes.FLOOR].astype(np.float64)
+    world = geometry.transform_points(frame.pose, floor)
+    return ProcessedScan(frame.stamp, frame.pose, [], points=world, index=index)
+
+
+def floor_window(scans, config):
+    heights = np.array([s.points[:, 2].mean() for s in scans])
+    return WindowResult([s.stamp for s in scans], pne=float(np.ptp(heights)), cpv=float(heights.var()),
+                        n_planes=len(scans), n_groups=1)
+
+
+def cfg(**over):
+    return load_config(overrides={"window.size": 5, "health.baseline_windows": 2, **over})
+
+
+def run(bag_path, out, **opt):
+    return replay(bag_path, out, cfg(), ReplayOptions(progress=False, **opt), floor_scan, floor_window)
+
+
+def read_diagnostics(path):
+    from mcap.reader import make_reader
+
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[mcap_ros2_decoder.DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            out.append((channel.topic, schema.name, message.log_time, decoded))
+    return out
+
+
+def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
+    bag_path, truth = office_bag
+    res = run(bag_path, tmp_path / "out")
+    s = res.summary
+    assert s["error"] == "" and s["scans_read"] == 30 and s["scans_processed"] == 30
+    assert s["windows"] == 6 and s["extrinsic_source"] == "tf_static"
+    # floor height agrees within a window before drift starts (ground-truth labels, tf_static extrinsic)
+    assert res.windows[0]["cpv"] < 1e-4
+    msgs = read_diagnostics(tmp_path / "out" / "diagnostics.mcap")
+    assert len(msgs) == 6
+    for (topic, schema, log_time, arr), rec in zip(msgs, res.windows):
+        assert topic == "/diagnostics" and schema == "diagnostic_msgs/msg/DiagnosticArray"
+        stamp = arr.header.stamp.sec + 1e-9 * arr.header.stamp.nanosec
+        assert stamp == pytest.approx(rec["end"], abs=1e-6)  # bag time, not wall time
+        assert log_time == pytest.approx(rec["end"] * 1e9, abs=1e3)
+        st = arr.status[0]
+        assert st.name == "topometric: map consistency" and st.hardware_id == "velodyne"
+        values = {kv.key: kv.value for kv in st.values}
+        assert float(values["pne"]) == pytest.approx(rec["pne"], rel=1e-5)
+        assert st.level == {"OK": 0, "WARN": 1, "ERROR": 2}[rec["level"]]
+        assert st.message == rec["message"]
+    rows = list(csv.DictReader(open(tmp_path / "out" / "windows.csv")))
+    assert len(rows) == 6 and float(rows[2]["cpv"]) == pytest.approx(res.windows[2]["cpv"], rel=1e-5)
+    doc = json.loads((tmp_path / "out" / "windows.json").read_text())
+    assert doc["summary"]["windows"] == 6 and len(doc["windows"]) == 6
+    assert all(np.isfinite(r["rpe"]) for r in res.windows)  # the bag has /odom_gt
+    assert (tmp_path / "out" / "metrics.png").stat().st_size > 10_000
+
+
+def test_replay_of_a_truncated_bag_reports_the_error_and_keeps_what_it_processed(office_bag, tmp_path):
+    bag_path, _ = office_bag
+    broken = tmp_path / "broken"
+    shutil.copytree(bag_path, broken)
+    (mcap_file,) = broken.glob("*.mcap")
+    data = mcap_file.read_bytes()
+    mcap_file.write_bytes(data[: int(len(data) * 0.6)])
+    res = run(broken, tmp_path / "out")
+    s = res.summary
+    assert s["error"] and "index unreadable" in s["notes"][0]
+    assert 0 < s["scans_read"] < 30 and 1 <= s["windows"] < 6
+    assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == s["windows"]
+    assert json.loads((tmp_path / "out" / "windows.json").read_text())["summary"]["error"] == s["error"]
+
+
+def test_realtime_mode_runs_through_the_live_worker(office_bag, tmp_path):
+    bag_path, _ = office_bag
+    res = run(bag_path, tmp_path / "out", rate="20", plot=False)  # 20x real time: 6 s of bag in ~0.3 s
+    c = res.summary["counters"]
+    assert res.summary["mode"] == "live x20"
+    assert c["scans_processed"] + c["dropped_scans"] == 30
+    assert res.summary["windows"] == len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap"))
+
+
+def test_missing_bag_and_bad_rate_are_clear_errors(tmp_path):
+    with pytest.raises(BagError):
+        run(tmp_path / "nope", tmp_path / "out")
+    with pytest.raises(ValueError):
+        ReplayOptions  # noqa: B018
+        replay(tmp_path, tmp_path / "out", cfg(), ReplayOptions(rate="fast", progress=False))
+
+
+def test_rpe_is_zero_for_identical_and_grows_with_error():
+    gt = geometry.yaw_pose(np.arange(5.0), 0.0, 0.0, 0.1 * np.arange(5))
+    assert relative_pose_error(gt, gt) == pytest.approx(0.0, abs=1e-12)
+    est = gt @ geometry.make_pose(np.eye(3), [[0, 0, 0.01 * k] for k in range(5)])
+    worse = gt @ geometry.make_pose(np.eye(3), [[0, 0, 0.03 * k] for k in range(5)])
+    assert 0 < relative_pose_error(gt, est) < relative_pose_error(gt, worse)
+
+
+def test_replay_survives_a_bag_of_bad_input_and_counts_each_case(office_bag, tmp_path):
+    """Copy the office bag, injecting: a malformed cloud, a cloud of NaN/inf, an empty cloud, a duplicate
+    scan, odometry with a non-unit (x3) and a zero quaternion, and a backwards jump of all stamps."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+    bad = tmp_path / "bad"
+    n_points, injected = 0, False
+    with bag.BagWriter(bad) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            t = t_ns * 1e-9
+            w.write(topic, t, msg)
+            if topic == "/points":
+                n_points += 1
+                if n_points == 3:
+                    w.write(topic, t + 0.001, msg)  # duplicate stamp
+                if n_points == 4:
+                    broken = copy.copy(msg)
+                    broken.point_step = 7  # fields beyond point_step
+                    w.write(topic, t + 0.001, broken)
+                if n_points == 5:
+                    nan = copy.copy(msg)
+                    nan.data = np.full(len(msg.data) // 4, np.nan, np.float32).view(np.uint8)
+                    w.write(topic, t + 0.001, nan)
+                if n_points == 6:
+                    empty = copy.copy(msg)
+                    empty.width, empty.row_step, empty.data = 0, 0, np.zeros(0, np.uint8)
+                    w.write(topic, t + 0.001, empty)
+            if topic == "/odom" and n_points == 8 and not injected:
+                injected = True
+                q = msg.pose.pose.orientation
+                odd = copy.deepcopy(msg)
+                odd.pose.pose.orientation.x, odd.pose.pose.orientation.w = 3 * q.x, 3 * q.w
+                odd.pose.pose.orientation.y, odd.pose.pose.orientation.z = 3 * q.y, 3 * q.z
+                odd.header.stamp.nanosec = (odd.header.stamp.nanosec + 1000) % 1_000_000_000
+                w.write(topic, t + 0.0001, odd)
+                zero = copy.deepcopy(msg)
+                zero.pose.pose.orientation.x = zero.pose.pose.orientation.y = 0.0
+                zero.pose.pose.orientation.z = zero.pose.pose.orientation.w = 0.0
+                w.write(topic, t + 0.0002, zero)
+    res = run(bad, tmp_path / "out")
+    c = res.summary["counters"]
+    assert res.summary["error"] == ""
+    assert c["dropped_duplicate"] == 1
+    assert c["dropped_bad_scan"] == 3  # malformed, all-NaN, empty
+    assert c["nonfinite_points"] > 0
+    assert c["bad_poses"] == 1  # the zero quaternion; the x3 one is normalised and used
+    assert c["scans_processed"] == 30 and res.summary["windows"] == 6
+    assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == 6
+
+
+def test_replay_cli_exit_codes(office_bag, tmp_path, capsys):
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    assert cli.main(["replay", str(tmp_path / "missing"), "--out", str(tmp_path / "o1"), "--quiet"]) == 2
+    assert "bag not found" in capsys.readouterr().err
+    broken = tmp_path / "broken"
+    shutil.copytree(bag_path, broken)
+    (f,) = broken.glob("*.mcap")
+    f.write_bytes(f.read_bytes()[:100_000])
+    assert cli.main(["replay", str(broken), "--out", str(tmp_path / "o2"), "--quiet", "--no-plot",
+                     "--segmentation", "labels"]) == 1
+    out = capsys.readouterr().out
+    assert "ERROR" in out and (tmp_path / "o2" / "windows.json").exists()
+
+
+def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):
+    """The default per-scan/per-window functions (pipeline.process_scan / score_window): finite scores,
+    planes in every window, no alarm in a drift-free stretch (the fixture's drift starts after 20 s)."""
+    bag_path, truth = office_bag
+    config = load_config(overrides={"segmentation.mode": "labels", "health.baseline_windows": 3})
+    res = replay(bag_path, tmp_path / "out", config, ReplayOptions(progress=False, plot=False))
+    assert res.summary["error"] == "" and res.summary["windows"] == 6
+    assert all(ep["start"] > res.windows[-1]["end"] for ep in truth["episodes"])
+    for r in res.windows:
+        assert np.isfinite(r["pne"]) and np.isfinite(r["cpv"]) and r["n_planes"] >= 10
+        assert r["level"] == "OK", r["message"]
+        assert r["rpe"] == pytest.approx(0.0, abs=1e-6)
+        assert r["ms_scans_planes"] > 0  # per-step timings of the pipeline reach the report
+
+
+def test_an_odometry_gap_is_reported_stale_in_bag_time(office_bag, tmp_path):
+    """No /odom for 3 s of bag time: one STALE status (bag-time stamped) and the scans in the gap dropped."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+    gap = tmp_path / "gap"
+    t_first = None
+    with bag.BagWriter(gap) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            t = t_ns * 1e-9
+            t_first = t if topic == "/points" and t_first is None else t_first
+            if topic == "/odom" and t_first is not None and 1.0 < t - t_first < 4.0:
+                continue
+            w.write(topic, t, msg)
+    config = cfg(**{"health.stale_after_s": 1.5})
+    res = replay(gap, tmp_path / "out", config, ReplayOptions(progress=False, plot=False), floor_scan, floor_window)
+    msgs = read_diagnostics(tmp_path / "out" / "diagnostics.mcap")
+    stale = [(log_time, arr.status[0]) for _, _, log_time, arr in msgs
+             if arr.status[0].level == 3]
+    assert len(stale) == 1
+    log_time, status = stale[0]
+    assert "no odometry for" in status.message
+    assert 1.0 + 1.5 < log_time * 1e-9 - t_first < 4.0 + 0.5  # in the gap, in bag time
+    assert res.summary["counters"]["dropped_no_pose"] >= 10  # 2.6 s of 5 Hz scans had no odometry

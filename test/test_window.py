@@ -1,0 +1,82 @@
+"""PoseBuffer (interpolation by stamp, gaps, time jumps) and SlidingWindow (size, step, resets)."""
+import numpy as np
+import pytest
+
+from topometric_ros import geometry
+from topometric_ros.window import PoseBuffer, SlidingWindow
+
+
+def _buffer(stamps, poses, horizon=30.0):
+    b = PoseBuffer(horizon)
+    for s, p in zip(stamps, poses):
+        assert b.add(s, p) == "ok"
+    return b
+
+
+def test_lookup_interpolates_translation_linearly_and_yaw_by_slerp():
+    poses = geometry.yaw_pose([0.0, 2.0], [0.0, 4.0], 0.0, [0.0, np.pi / 2])
+    b = _buffer([10.0, 11.0], poses)
+    mid = b.lookup(10.25, max_gap_s=1.0)
+    np.testing.assert_allclose(mid[:3, 3], [0.5, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(geometry.rotation_angle(mid[:3, :3]), np.pi / 8, atol=1e-9)
+    np.testing.assert_allclose(b.lookup(11.0, 1.0), poses[1])  # an exact stamp returns that pose
+
+
+def test_lookup_outside_the_buffer_or_beyond_the_gap_is_none():
+    poses = geometry.yaw_pose([0.0, 1.0, 2.0], 0.0, 0.0, 0.0)
+    b = _buffer([0.0, 0.1, 2.0], poses)
+    assert b.lookup(-0.01, 0.5) is None
+    assert b.lookup(2.01, 0.5) is None
+    assert b.lookup(0.05, 0.5) is not None
+    assert b.lookup(1.0, 0.5) is None  # 0.9 s from both neighbours: no odometry within the gap
+    assert b.lookup(1.0, 1.0) is not None
+
+
+def test_duplicate_is_ignored_and_backwards_restarts():
+    b = _buffer([0.0, 1.0], geometry.yaw_pose([0.0, 1.0], 0.0, 0.0, 0.0))
+    assert b.add(1.0, np.eye(4)) == "duplicate"
+    assert len(b) == 2
+    assert b.add(0.5, np.eye(4)) == "backwards"
+    assert len(b) == 1 and b.newest == 0.5
+
+
+def test_horizon_bounds_memory_but_keeps_a_bracket():
+    stamps = np.arange(0, 100, 0.05)
+    b = _buffer(stamps, np.repeat(np.eye(4)[None], len(stamps), 0), horizon=2.0)
+    assert len(b) <= 2.0 / 0.05 + 3
+    assert b.oldest >= stamps[-1] - 2.1
+    assert b.lookup(stamps[-1] - 1.0, 0.1) is not None
+
+
+@pytest.mark.parametrize("size,step", [(5, 5), (5, 2), (3, 5), (1, 1)])
+def test_windows_have_size_and_start_every_step(size, step):
+    w = SlidingWindow(size, step)
+    out = [win for i in range(40) if (win := w.push(i, float(i))) is not None]
+    assert all(len(win) == size for win in out)
+    assert all(win == list(range(win[0], win[0] + size)) for win in out)
+    assert [win[0] for win in out] == list(range(0, 40 - size + 1, step))
+
+
+def test_step_zero_means_size():
+    w = SlidingWindow(4, 0)
+    out = [win for i in range(12) if (win := w.push(i, float(i))) is not None]
+    assert out == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]
+
+
+def test_backwards_or_repeated_stamp_restarts_the_window():
+    w = SlidingWindow(3)
+    assert w.push("a", 10.0) is None and w.push("b", 11.0) is None
+    assert w.push("c", 5.0) is None  # bag loop: a, b discarded
+    assert w.discarded == 1 and w.resets == 1
+    assert w.push("d", 6.0) is None
+    assert w.push("e", 7.0) == ["c", "d", "e"]
+    w.push("f", 8.0)
+    w.push("g", 8.0)  # duplicate stamp also restarts
+    assert w.resets == 2 and len(w) == 1
+
+
+def test_bad_sizes_are_rejected():
+    with pytest.raises(ValueError):
+        SlidingWindow(0)
+    with pytest.raises(ValueError):
+        SlidingWindow(3, -1)

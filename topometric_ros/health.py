@@ -1,0 +1,192 @@
+"""Drift alarms: a WindowResult -> OK / WARN / ERROR (or STALE without input) with a human reason.
+
+No per-site tuning: each metric (PNE reacts to rotation drift, CPV to translation drift) is compared
+with a robust baseline learned from this run's first ``baseline_windows`` windows (median and MAD, then
+rolling over the last ``baseline_history`` calm windows (OK, z below warn_sigma / 2), so neither a drift
+episode nor a slow ramp teaches the baseline).
+Both are compared on a log scale: PNE is already one (an entropy, ½ ln det Σ + c), CPV (a variance, m²)
+through ln CPV, so the spread floors (``pne_min_sigma``, ``cpv_min_sigma``) are unit-free and site-free.
+The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_sigma`` and ERROR at
+``error_sigma``. Absolute limits (config, in metric units, 0 = off) apply from the first window.
+
+Also here: the diagnostics message builders shared by node.py and replay.py. They take the message
+classes as input (rosbags or rclpy), so this module imports no ROS.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from .config import HealthConfig
+
+LEVELS = ("OK", "WARN", "ERROR", "STALE")
+RANK = {name: i for i, name in enumerate(LEVELS)}
+#: metric -> (what its rise means, unit). PNE rises with rotation error only; CPV with translation error and
+#: with rotation error (a rotated scan shifts its distant planes), so its alarm names both.
+METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation/rotation drift", "m²")}
+STATUS_NAME = "topometric: map consistency"
+MAD_TO_SIGMA = 1.4826
+CPV_TINY = 1e-12  # m², CPV below this is taken as this on the log scale
+
+
+def to_scale(metric: str, value: float) -> float:
+    """The scale a metric is compared on: PNE as is (nats), CPV as ln CPV."""
+    return float(np.log(max(value, CPV_TINY))) if metric == "cpv" else float(value)
+
+
+def from_scale(metric: str, x: float) -> float:
+    """Inverse of :func:`to_scale` (back to metric units)."""
+    return float(np.exp(x)) if metric == "cpv" else float(x)
+
+
+@dataclass
+class Assessment:
+    """What health.py concluded about one window: level, reason, robust z and thresholds per metric."""
+
+    level: str
+    message: str
+    z: dict = field(default_factory=dict)  # metric -> robust z (nan while learning)
+    warn_at: dict = field(default_factory=dict)  # metric -> value (metric units) where WARN starts
+    error_at: dict = field(default_factory=dict)
+
+
+class Health:
+    """Stateful assessor: one per monitored stream. ``assess`` sets result.level / result.message."""
+
+    def __init__(self, config: HealthConfig | None = None):
+        self.config = config or HealthConfig()
+        self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
+                         for m in METRICS}
+        self.last: Assessment | None = None
+
+    def reset_clock(self) -> None:
+        """Time jumped back: the baseline stays (same robot, same site); nothing else to forget."""
+
+    def baseline(self, metric: str) -> tuple[float, float] | None:
+        """(median, robust sigma) of a metric ON ITS COMPARISON SCALE (to_scale) once ``baseline_windows``
+        windows are in, else None."""
+        h = self._history[metric]
+        if len(h) < max(1, self.config.baseline_windows):
+            return None
+        values = np.asarray(h)
+        med = float(np.median(values))
+        mad = float(np.median(np.abs(values - med)))
+        return med, max(MAD_TO_SIGMA * mad, getattr(self.config, f"{metric}_min_sigma"), 1e-12)
+
+    def assess(self, result: Any) -> Assessment:
+        """Level and reason for a WindowResult (its ``level``/``message`` are set too)."""
+        c = self.config
+        level, reasons, z, warn_at, error_at = "OK", [], {}, {}, {}
+        learning = False
+        for metric, (meaning, unit) in METRICS.items():
+            value = float(getattr(result, metric))
+            if not np.isfinite(value):
+                level = _worse(level, "WARN")
+                reasons.append(f"{metric.upper()} undefined (no co-planar planes)")
+                continue
+            base = self.baseline(metric)
+            lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
+            warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
+            z[metric] = (to_scale(metric, value) - base[0]) / base[1] if base else float("nan")
+            learning |= base is None
+            if lim_err != 0 and value >= lim_err:
+                level = _worse(level, "ERROR")
+                reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
+            elif base and z[metric] >= c.error_sigma:
+                level = _worse(level, "ERROR")
+                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
+            elif lim_warn != 0 and value >= lim_warn:
+                level = _worse(level, "WARN")
+                reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
+            elif base and z[metric] >= c.warn_sigma:
+                level = _worse(level, "WARN")
+                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
+        if result.n_planes < c.min_planes:
+            level = _worse(level, "WARN")
+            reasons.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
+        calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
+        if learning or (level == "OK" and calm):  # only clearly normal windows teach the baseline (no creep)
+            for metric in METRICS:
+                value = float(getattr(result, metric))
+                if np.isfinite(value):
+                    self._history[metric].append(to_scale(metric, value))
+        if not reasons:
+            if learning:
+                n = min(len(h) for h in self._history.values())
+                reasons.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
+            else:
+                reasons.append("consistent (" + ", ".join(f"{m.upper()} {z[m]:+.1f}σ" for m in z) + ")")
+        result.level, result.message = level, "; ".join(reasons)
+        self.last = Assessment(level, result.message, z, warn_at, error_at)
+        return self.last
+
+    def stale(self, now: float, last_scan: float | None, last_pose: float | None) -> tuple[str, str] | None:
+        """("STALE", reason) when no scan or no odometry came within stale_after_s before ``now`` (any clock,
+        e.g. sim time; a clock that jumped back before the last input is not stale), else None."""
+        limit = self.config.stale_after_s
+        missing = []
+        for what, last in (("scans", last_scan), ("odometry", last_pose)):
+            if last is None:
+                missing.append(f"no {what} yet")
+            elif now - last > limit:
+                missing.append(f"no {what} for {now - last:.1f} s")
+        return ("STALE", "; ".join(missing)) if missing else None
+
+
+def _worse(a: str, b: str) -> str:
+    return a if RANK[a] >= RANK[b] else b
+
+
+def _limits(metric: str, base, c: HealthConfig, lim_warn: float, lim_err: float) -> tuple[float, float]:
+    """Metric values (metric units) where WARN and ERROR start (the lower of sigma and absolute limits)."""
+    sig_w = from_scale(metric, base[0] + c.warn_sigma * base[1]) if base else None
+    sig_e = from_scale(metric, base[0] + c.error_sigma * base[1]) if base else None
+    warn = [v for v in (sig_w, lim_warn or None) if v is not None]
+    err = [v for v in (sig_e, lim_err or None) if v is not None]
+    return (min(warn) if warn else float("nan")), (min(err) if err else float("nan"))
+
+
+# -------------------------------------------------------------------- diagnostics messages
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return "nan" if not np.isfinite(value) else f"{value:.6g}"
+    return str(value)
+
+
+def window_values(result: Any, counters: Mapping[str, int] | None = None,
+                  extra: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """The KeyValue strings of one window's status (DESIGN.md's list, then the monitor's counters)."""
+    values = {"pne": result.pne, "cpv": result.cpv}
+    for name in ("mme", "mpv", "mom"):
+        if getattr(result, name, None) is not None:
+            values[name] = getattr(result, name)
+    values.update(n_planes=result.n_planes, n_groups=result.n_groups,
+                  window_start=result.stamps[0] if result.stamps else float("nan"),
+                  window_end=result.stamps[-1] if result.stamps else float("nan"),
+                  latency_ms=result.timings.get("latency", float("nan")))
+    counters = dict(counters or {})
+    values["dropped_windows"] = counters.pop("dropped_windows", 0)
+    values.update(extra or {})
+    values.update(counters)
+    return {k: _fmt(v) for k, v in values.items()}
+
+
+def diagnostic_status(types: Any, level: str, message: str, values: Mapping[str, str],
+                      name: str = STATUS_NAME, hardware_id: str = "") -> Any:
+    """diagnostic_msgs/DiagnosticStatus from the message classes in ``types`` (DiagnosticStatus, KeyValue);
+    the level constant comes from the class (int in rosbags, bytes in rclpy)."""
+    if level not in RANK:
+        raise ValueError(f"unknown level {level!r}; one of {LEVELS}")
+    return types.DiagnosticStatus(level=getattr(types.DiagnosticStatus, level), name=name, message=message,
+                                  hardware_id=hardware_id,
+                                  values=[types.KeyValue(key=str(k), value=str(v)) for k, v in values.items()])
+
+
+def diagnostic_array(types: Any, stamp: float, statuses: list) -> Any:
+    """diagnostic_msgs/DiagnosticArray stamped ``stamp`` s (types: DiagnosticArray, Header, Time)."""
+    from .cloud import make_header
+
+    return types.DiagnosticArray(header=make_header(stamp, "", types), status=list(statuses))

@@ -1,0 +1,429 @@
+"""Monitor: scans and odometry in, scored and assessed windows out. Used by the ROS node AND by replay.
+
+Clouds and poses arrive separately and out of step. A scan waits (``pending``) until odometry newer than
+its stamp + ``window.pose_wait_s`` has arrived, then gets the odometry pose interpolated at its stamp,
+times the extrinsic (odometry child frame -> sensor frame); a scan with no odometry within
+``window.max_pose_gap_s`` (or still waiting after ``window.pose_timeout_s`` of scan time) is dropped and
+counted. Each resolved scan is processed ONCE (``scan_fn``: voxel downsample, segmentation, planes) and
+pushed to the sliding window; a window is scored (``window_fn``) and assessed (health.py) when its last
+scan is processed.
+
+Two modes: ``live=True`` runs the per-scan work in a worker thread behind a bounded queue (when the worker
+falls behind the OLDEST queued scan is dropped and counted, so memory stays flat and the feeder never
+blocks; with ``block=True`` the feeder waits instead, so every scan is processed while reading overlaps
+the work: replay as fast as possible); ``live=False`` does the work in the caller's thread, in order. Bad input (malformed clouds, non-finite points, empty scans, bad quaternions,
+duplicate or backwards stamps) is counted in ``counters`` and skipped; nothing raises.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from . import geometry
+from .cloud import CloudError, read_cloud, stamp_seconds, xyz
+from .config import Config
+from .health import Health
+from .window import Frame, PoseBuffer, SlidingWindow
+
+#: Every counter the monitor keeps, in report order.
+COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue_full", "dropped_no_pose",
+            "dropped_duplicate", "dropped_bad_scan", "nonfinite_points", "bad_poses", "duplicate_poses",
+            "time_resets", "scan_errors", "window_errors", "windows_discarded")
+#: Counters that are scans lost before processing.
+DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "scan_errors")
+MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
+
+
+@dataclass
+class _Scan:
+    """A scan before its pose is known: sensor-frame arrays, header stamp (s), receive wall time."""
+
+    stamp: float
+    points: np.ndarray
+    labels: np.ndarray | None
+    ring: np.ndarray | None
+    intensity: np.ndarray | None
+    arrived: float
+
+
+def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
+    """[x, y, z, qx, qy, qz, qw] (m, quaternion normalised) -> 4×4 pose. ValueError when malformed."""
+    v = np.asarray(values, np.float64)
+    if v.shape != (7,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"extrinsic must be 7 finite numbers [x y z qx qy qz qw], got {list(values)!r}")
+    return geometry.pose_from_quat(v[3:], v[:3])
+
+
+def _valid_pose(pose: np.ndarray) -> bool:
+    pose = np.asarray(pose, np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        return False
+    r = pose[:3, :3]
+    return bool(np.abs(r.T @ r - np.eye(3)).max() < 1e-6 and np.linalg.det(r) > 0)
+
+
+class StaticTransforms:
+    """/tf_static transforms (child -> parent) and chains between frames; no TF library needed."""
+
+    def __init__(self) -> None:
+        self._parent: dict[str, tuple[str, np.ndarray]] = {}
+
+    def add_message(self, msg: Any) -> int:
+        """Store every transform of a tf2_msgs/TFMessage; returns how many were valid."""
+        n = 0
+        for tf in msg.transforms:
+            r, t = tf.transform.rotation, tf.transform.translation
+            try:
+                pose = geometry.pose_from_quat([r.x, r.y, r.z, r.w], [t.x, t.y, t.z])
+            except ValueError:
+                continue
+            if np.all(np.isfinite(pose)):
+                self._parent[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), pose)
+                n += 1
+        return n
+
+    def lookup(self, parent: str, child: str) -> np.ndarray | None:
+        """4×4 child-to-parent pose along stored transforms, None when the frames are not connected upward."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        pose, frame = np.eye(4), child
+        for _ in range(64):
+            if frame == parent:
+                return pose
+            if frame not in self._parent:
+                return None
+            frame, step = self._parent[frame]
+            pose = step @ pose
+        return None
+
+
+class Monitor:
+    """The drift monitor. Feed ``add_cloud``/``add_scan`` and ``add_odometry``/``add_pose`` in any order.
+
+    scan_fn(frame, config, segmenter, index) -> ProcessedScan and window_fn(scans, config) -> WindowResult
+    default to pipeline.process_scan and pipeline.score_window. ``on_window(result, scans)`` is called for
+    every completed window (in the worker thread when live). Use as a context manager, or call ``close``.
+    """
+
+    def __init__(self, config: Config | None = None, scan_fn: Callable | None = None,
+                 window_fn: Callable | None = None, segmenter: Any = None, live: bool = False,
+                 on_window: Callable | None = None, keep_results: int = 1000, block: bool = False):
+        from . import pipeline
+
+        self.config = config or Config()
+        w = self.config.window
+        self.scan_fn = scan_fn or pipeline.process_scan
+        self.window_fn = window_fn or pipeline.score_window
+        self.segmenter = segmenter
+        self.live = live
+        self.block = block  # live: a full queue makes the feeder wait instead of dropping (replay)
+        self.on_window = on_window
+        self.health = Health(self.config.health)
+        self.poses = PoseBuffer(w.pose_horizon_s)
+        self.window = SlidingWindow(w.size, w.step)
+        self.extrinsic = extrinsic_from_list(w.extrinsic)
+        self.extrinsic_source = "config"
+        self.static_tf = StaticTransforms()
+        self.results: deque = deque(maxlen=keep_results)
+        self.last_error = ""
+        self.last_scan_received: float | None = None  # clock/bag time of the last scan (for STALE)
+        self.last_pose_received: float | None = None
+        self._counts = dict.fromkeys(COUNTERS, 0)
+        self._lock = threading.Lock()
+        self._pending: deque[_Scan] = deque()
+        self._last_scan_stamp: float | None = None
+        self._odom_child = ""
+        self.sensor_frame = ""  # frame_id of the clouds (the sensor frame)
+        self.map_frame = ""  # frame_id of the odometry (the frame poses and planes live in)
+        self._index = 0
+        self._queue: deque = deque()
+        self._cond = threading.Condition(self._lock)
+        self._busy = False
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        if live:
+            self._thread = threading.Thread(target=self._worker, name="topometric-worker", daemon=True)
+            self._thread.start()
+
+    # ---------------------------------------------------------------- counters
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[name] = self._counts.get(name, 0) + n
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """A snapshot of every counter, plus ``dropped_scans`` (all scans lost before processing)."""
+        with self._lock:
+            out = dict(self._counts)
+        out["dropped_scans"] = sum(out[k] for k in DROP_COUNTERS)
+        out["dropped_windows"] = out["windows_discarded"] + out["window_errors"]
+        return out
+
+    @property
+    def queue_length(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    @property
+    def pending_length(self) -> int:
+        return len(self._pending)
+
+    def _error(self, counter: str, message: str) -> None:
+        self.count(counter)
+        self.last_error = message
+
+    # ---------------------------------------------------------------- inputs: messages
+    def add_cloud(self, msg: Any, received: float | None = None) -> bool:
+        """A sensor_msgs/PointCloud2 (rosbags or rclpy). Malformed clouds are counted, never raised."""
+        try:
+            fields = read_cloud(msg)
+            stamp = stamp_seconds(msg.header)
+        except (CloudError, AttributeError, TypeError, ValueError) as e:
+            self.count("scans_in")
+            self._error("dropped_bad_scan", f"malformed cloud: {e}")
+            return False
+        frame_id = str(getattr(msg.header, "frame_id", ""))
+        if frame_id and frame_id != self.sensor_frame:
+            self.sensor_frame = frame_id
+            self._resolve_extrinsic()
+        pts, finite = xyz(fields)
+        per_point = {}
+        for name, key, dtype in (("labels", "label", np.uint8), ("ring", "ring", np.uint16),
+                                 ("intensity", "intensity", np.float32)):
+            a = fields.get(key)
+            per_point[name] = a[finite].astype(dtype, copy=False) if a is not None and a.ndim == 1 else None
+        self.count("nonfinite_points", int((~finite).sum()))
+        return self._accept(stamp, pts, per_point, received, finite=True)
+
+    def add_odometry(self, msg: Any, received: float | None = None) -> bool:
+        """A nav_msgs/Odometry (pose of its child frame in its parent frame). Bad quaternions are counted."""
+        from .bag import odometry_pose
+
+        try:
+            stamp, pose = odometry_pose(msg)
+        except (ValueError, AttributeError, TypeError) as e:
+            self.count("poses_in")
+            self._error("bad_poses", f"bad odometry: {e}")
+            return False
+        self.map_frame = str(getattr(msg.header, "frame_id", "")) or self.map_frame
+        child = str(getattr(msg, "child_frame_id", ""))
+        if child and child != self._odom_child:
+            self._odom_child = child
+            self._resolve_extrinsic()
+        return self.add_pose(stamp, pose, received)
+
+    def add_tf_static(self, msg: Any) -> None:
+        """A tf2_msgs/TFMessage from /tf_static: the extrinsic comes from it when it links the frames."""
+        self.static_tf.add_message(msg)
+        self._resolve_extrinsic()
+
+    def _resolve_extrinsic(self) -> None:
+        if self._odom_child and self.sensor_frame:
+            pose = self.static_tf.lookup(self._odom_child, self.sensor_frame)
+            if pose is not None:
+                self.extrinsic, self.extrinsic_source = pose, "tf_static"
+
+    # ---------------------------------------------------------------- inputs: arrays
+    def add_pose(self, stamp: float, pose: np.ndarray, received: float | None = None) -> bool:
+        """Odometry pose (4×4, odometry child frame -> map) at ``stamp`` s."""
+        self.count("poses_in")
+        if not np.isfinite(stamp) or not _valid_pose(pose):
+            self._error("bad_poses", f"pose at {stamp} is not a finite rigid transform")
+            return False
+        self.last_pose_received = float(stamp if received is None else received)
+        status = self.poses.add(stamp, pose)
+        if status == "duplicate":
+            self.count("duplicate_poses")
+            return False
+        if status == "backwards":
+            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}")
+        self._resolve_pending()
+        return True
+
+    def add_scan(self, stamp: float, points: np.ndarray, labels: np.ndarray | None = None,
+                 ring: np.ndarray | None = None, intensity: np.ndarray | None = None,
+                 received: float | None = None) -> bool:
+        """One scan: (N, 3) sensor-frame points (m) and optional per-point arrays, header stamp (s).
+
+        Non-finite points are removed (counted); an empty, malformed, duplicate scan is dropped (counted).
+        Returns True when the scan was accepted (it may still wait for odometry)."""
+        extra = {"labels": labels, "ring": ring, "intensity": intensity}
+        return self._accept(stamp, points, extra, received, finite=False)
+
+    def _accept(self, stamp, points, extra: dict, received, finite: bool) -> bool:
+        self.count("scans_in")
+        scan = self._checked_scan(stamp, points, extra, finite)
+        if scan is None:
+            return False
+        self.last_scan_received = float(stamp if received is None else received)
+        if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
+            if scan.stamp == self._last_scan_stamp:
+                self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}")
+                return False
+            self._time_reset(f"scan stamp went backwards to {stamp:.3f}")
+        self._last_scan_stamp = scan.stamp
+        self._pending.append(scan)
+        while len(self._pending) > MAX_PENDING:
+            self._pending.popleft()
+            self._error("dropped_no_pose", "too many scans waiting for odometry")
+        self._resolve_pending()
+        return True
+
+    def _checked_scan(self, stamp, points, extra: dict, finite: bool) -> _Scan | None:
+        """The scan with non-finite points removed (skipped when ``finite``: already filtered), or None."""
+        try:
+            stamp = float(stamp)
+            pts = np.asarray(points)
+            if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
+                raise ValueError(f"points must be (N, 3) numbers, got shape {pts.shape} {pts.dtype}")
+            if not np.isfinite(stamp):
+                raise ValueError(f"scan stamp {stamp} is not finite")
+            for name, a in extra.items():
+                if a is not None and len(a) != len(pts):
+                    raise ValueError(f"{name} has {len(a)} entries for {len(pts)} points")
+        except (ValueError, TypeError) as e:
+            self._error("dropped_bad_scan", f"malformed scan: {e}")
+            return None
+        keep = None if finite else np.isfinite(pts).all(axis=1)
+        if keep is not None and not keep.all():
+            self.count("nonfinite_points", int((~keep).sum()))
+            pts = pts[keep]
+            extra = {k: None if a is None else np.asarray(a)[keep] for k, a in extra.items()}
+        if len(pts) == 0:
+            self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}")
+            return None
+        return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
+                     time.perf_counter())
+
+    def _time_reset(self, why: str) -> None:
+        """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself."""
+        self.count("time_resets")
+        self.last_error = why
+        if self._pending:
+            self.count("dropped_no_pose", len(self._pending))
+            self._pending.clear()
+        self.health.reset_clock()
+
+    def _resolve_pending(self, final: bool = False) -> None:
+        w = self.config.window
+        newest = self.poses.newest
+        while self._pending:
+            scan = self._pending[0]
+            ready = final or (newest is not None and newest >= scan.stamp + w.pose_wait_s)
+            expired = self._last_scan_stamp - scan.stamp > w.pose_timeout_s
+            if not (ready or expired):
+                return
+            self._pending.popleft()
+            pose = self.poses.lookup(scan.stamp, w.max_pose_gap_s)
+            if pose is None:
+                self._error("dropped_no_pose", f"no odometry within {w.max_pose_gap_s} s of scan {scan.stamp:.3f}")
+                continue
+            frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity)
+            self._submit(frame, scan.arrived)
+
+    # ---------------------------------------------------------------- work
+    def _submit(self, frame: Frame, arrived: float) -> None:
+        index = self._index
+        self._index += 1
+        if not self.live:
+            self._process(frame, index, arrived)
+            return
+        with self._cond:
+            size = max(1, self.config.window.queue_size)
+            if self.block:
+                self._cond.wait_for(lambda: len(self._queue) < size)
+            elif len(self._queue) >= size:
+                self._queue.popleft()
+                self._counts["dropped_queue_full"] += 1
+            self._queue.append((frame, index, arrived))
+            self._cond.notify_all()
+
+    def _worker(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait()
+                if not self._queue:  # stopping and drained
+                    return
+                item = self._queue.popleft()
+                self._busy = True
+            try:
+                self._process(*item)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def _process(self, frame: Frame, index: int, arrived: float) -> None:
+        t0 = time.perf_counter()
+        try:
+            scan = self.scan_fn(frame, self.config, self.segmenter, index)
+        except Exception as e:  # noqa: BLE001 - a bad scan must not stop the monitor
+            self._error("scan_errors", f"scan {frame.stamp:.3f}: {type(e).__name__}: {e}")
+            return
+        scan.timings["monitor"] = 1000 * (time.perf_counter() - t0)
+        self.count("scans_processed")
+        discarded = self.window.discarded
+        scans = self.window.push(scan, frame.stamp)
+        if self.window.discarded > discarded:
+            self.count("windows_discarded", self.window.discarded - discarded)
+        if scans is not None:
+            self._score(scans, arrived)
+
+    def _score(self, scans: list, arrived: float) -> None:
+        t0 = time.perf_counter()
+        try:
+            result = self.window_fn(scans, self.config)
+        except Exception as e:  # noqa: BLE001
+            self._error("window_errors", f"window at {scans[-1].stamp:.3f}: {type(e).__name__}: {e}")
+            return
+        now = time.perf_counter()
+        result.timings["window"] = 1000 * (now - t0)  # ms, scoring this window
+        for key in sorted({k for s in scans for k in s.timings}):  # ms, per-scan steps summed over the window
+            result.timings[f"scans_{key}"] = float(sum(s.timings.get(key, 0.0) for s in scans))
+        result.timings["latency"] = 1000 * (now - arrived)  # ms, last scan's arrival -> window result
+        self.health.assess(result)
+        self.count("windows")
+        self.results.append(result)
+        if self.on_window is not None:
+            try:
+                self.on_window(result, scans)
+            except Exception as e:  # noqa: BLE001 - a failing consumer must not stop the worker
+                self.last_error = f"on_window: {type(e).__name__}: {e}"
+
+    # ---------------------------------------------------------------- control
+    def flush(self, timeout: float | None = None) -> bool:
+        """Resolve every waiting scan with the odometry there is, then wait until the worker is idle.
+        Returns False if ``timeout`` (s) passed first."""
+        self._resolve_pending(final=True)
+        if not self.live:
+            return True
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._queue and not self._busy, timeout)
+
+    def stale(self, now: float) -> tuple[str, str] | None:
+        """(STALE, reason) when no scan or no odometry arrived for health.stale_after_s before ``now``
+        (clock or bag time, the same clock as ``received``), else None."""
+        return self.health.stale(now, self.last_scan_received, self.last_pose_received)
+
+    def close(self, drain: bool = True) -> None:
+        """Stop the worker (after the queued work when ``drain``)."""
+        if self._thread is None:
+            return
+        with self._cond:
+            if not drain:
+                self._queue.clear()
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join()
+        self._thread = None
+
+    def __enter__(self) -> "Monitor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

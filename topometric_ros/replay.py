@@ -1,0 +1,425 @@
+"""Replay a rosbag2 bag through the Monitor (the same code the node runs) and write reports.
+
+Outputs in the output folder: ``diagnostics.mcap`` (diagnostic_msgs/DiagnosticArray on /diagnostics,
+stamped in bag time; opens in Foxglove and ``ros2 bag``), ``windows.csv`` and ``windows.json`` (every
+window's metrics, timings, level, reason; the JSON also holds the summary and counters) and
+``metrics.png`` (PNE and CPV over time with alarm bands, RPE when the bag has ground truth).
+
+Rate ``max`` (default) is deterministic: every scan and every window is processed in order (the worker
+thread processes while the reader reads on; the reader waits, never drops). ``realtime``
+(or a factor such as 2.0) feeds the monitor at bag speed through its live worker thread, as on a robot.
+A bag that breaks mid-file (truncated) is reported in the summary; what was processed is still written.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from . import bag, geometry
+from .config import Config
+from .health import diagnostic_array, diagnostic_status, window_values
+from .monitor import Monitor
+
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+
+@dataclass
+class ReplayOptions:
+    """Topics, speed and reporting of one replay."""
+
+    points_topic: str = "/points"
+    odom_topic: str = "/odom"
+    gt_topic: str = "/odom_gt"  # ground truth for RPE when the bag has it
+    tf_static_topic: str = "/tf_static"
+    rate: str = "max"  # max | realtime | a speed factor (e.g. "2")
+    hardware_id: str = ""  # "" = the cloud's frame_id
+    plot: bool = True
+    progress: bool = True
+
+
+@dataclass
+class ReplayResult:
+    out: Path
+    windows: list[dict] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+
+
+def _speed(rate: str) -> float | None:
+    """None for as fast as possible, else the speed factor (1 = real time)."""
+    if rate in ("max", "", None):
+        return None
+    if rate == "realtime":
+        return 1.0
+    try:
+        value = float(rate)
+    except ValueError:
+        raise ValueError(f"rate must be 'max', 'realtime' or a speed factor, got {rate!r}") from None
+    if not value > 0:
+        raise ValueError(f"rate factor must be > 0, got {value}")
+    return value
+
+
+# ------------------------------------------------------------------ reading (with a fallback for broken bags)
+def _mcap_files(path: Path) -> list[Path]:
+    return [path] if path.is_file() else sorted(path.glob("*.mcap"))
+
+
+def stream_mcap(path: Path, wanted: set[str]) -> Iterator[tuple[str, int, Any]]:
+    """Messages of an MCAP file read front to back without its index (works on truncated files up to the
+    break, where the reader's error propagates)."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    store = bag.typestore()
+    schemas, channels = {}, {}
+    with open(path, "rb") as f:
+        for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec.name
+            elif isinstance(rec, Channel):
+                channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+            elif isinstance(rec, Message) and rec.channel_id in channels:
+                topic, msgtype = channels[rec.channel_id]
+                if topic in wanted:
+                    yield topic, rec.log_time, store.deserialize_cdr(rec.data, msgtype)
+
+
+def read_bag(path: str | Path, wanted: set[str], notes: list[str]) -> Iterator[tuple[str, int, Any]]:
+    """(topic, receive ns, message) of the wanted topics present. A bag whose index cannot be opened
+    (truncated MCAP) is streamed record by record instead, with a note."""
+    path = Path(path)
+    if not path.exists():
+        raise bag.BagError(f"bag not found: {path}")
+    if path.is_dir():
+        try:
+            have = set(bag.topics(path))
+        except Exception as e:  # noqa: BLE001 - rosbags raises several types for a broken index
+            files = _mcap_files(path)
+            if not files:
+                raise
+            notes.append(f"bag index unreadable ({e}); streaming {files[0].name} record by record")
+            yield from stream_mcap(files[0], wanted)
+            return
+        yield from bag.read_messages(path, sorted(wanted & have))
+    else:
+        yield from stream_mcap(path, wanted)
+
+
+# ------------------------------------------------------------------ replay
+class _Recorder:
+    """Collects window records and writes the diagnostics bag as windows complete (thread safe)."""
+
+    def __init__(self, out: Path, monitor_ref: list, hardware_id: str):
+        self.types = bag.msg_types()
+        self.tmp = out / ".diagnostics_bag"
+        if self.tmp.exists():
+            shutil.rmtree(self.tmp)
+        self.writer = bag.BagWriter(self.tmp).__enter__()
+        self.lock = threading.Lock()
+        self.records: list[dict] = []
+        self.poses: list[list] = []  # per window: the scans' (stamp, sensor pose)
+        self.monitor_ref = monitor_ref
+        self.hardware_id = hardware_id
+
+    def window(self, result, scans) -> None:
+        m = self.monitor_ref[0]
+        a = m.health.last
+        rec = {"index": len(self.records), "start": result.stamps[0], "end": result.stamps[-1],
+               "n_scans": len(scans), "pne": result.pne, "cpv": result.cpv}
+        for name in ("mme", "mpv", "mom"):
+            if getattr(result, name) is not None:
+                rec[name] = getattr(result, name)
+        rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
+        for metric in ("pne", "cpv"):
+            rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
+            rec[f"{metric}_warn_at"] = a.warn_at.get(metric, float("nan")) if a else float("nan")
+            rec[f"{metric}_error_at"] = a.error_at.get(metric, float("nan")) if a else float("nan")
+        rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})
+        counters = m.counters
+        status = diagnostic_status(self.types, result.level, result.message, window_values(result, counters),
+                                   hardware_id=self.hardware_id or m.sensor_frame)
+        with self.lock:
+            self.records.append(rec)
+            self.poses.append([(s.stamp, s.pose) for s in scans])
+            self.writer.write(DIAGNOSTICS_TOPIC, result.stamps[-1],
+                              diagnostic_array(self.types, result.stamps[-1], [status]))
+
+    def stale(self, stamp: float, reason: str, hardware_id: str) -> None:
+        status = diagnostic_status(self.types, "STALE", reason, {}, hardware_id=hardware_id)
+        with self.lock:
+            self.writer.write(DIAGNOSTICS_TOPIC, stamp, diagnostic_array(self.types, stamp, [status]))
+
+    def close(self, target: Path) -> None:
+        self.writer.__exit__(None, None, None)
+        files = list(self.tmp.glob("*.mcap"))
+        if target.exists():
+            target.unlink()
+        if files:
+            files[0].replace(target)
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
+           options: ReplayOptions | None = None, scan_fn: Callable | None = None,
+           window_fn: Callable | None = None, segmenter: Any = None) -> ReplayResult:
+    """Stream the bag through a Monitor and write the reports to ``out``. Never raises for a broken bag:
+    the error is in ``summary['error']`` and everything processed before it is written."""
+    config = config or Config()
+    opt = options or ReplayOptions()
+    speed = _speed(opt.rate)
+    if not Path(bag_path).exists():
+        raise bag.BagError(f"bag not found: {bag_path}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if segmenter is None and scan_fn is None and config.segmentation.mode == "network":
+        segmenter = load_segmenter(config)
+    ref: list = []
+    rec = _Recorder(out, ref, opt.hardware_id)
+    # as fast as possible: the worker thread processes every scan in order (the reader waits when it is
+    # ahead), so reading and parsing overlap the per-scan work; real time: a live monitor that drops
+    monitor = Monitor(config, scan_fn, window_fn, segmenter, live=True, block=speed is None, on_window=rec.window)
+    ref.append(monitor)
+    gt_stamps, gt_poses, notes = [], [], []
+    error, n_scans, first, last = "", 0, None, None
+    total = _scan_count(bag_path, opt.points_topic)
+    wall0 = time.perf_counter()
+    stale_reported = False
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc="replay", unit="scan", disable=not opt.progress, leave=False)
+    try:
+        wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
+        for topic, t_ns, msg in read_bag(bag_path, wanted, notes):
+            t = t_ns * 1e-9
+            first = t if first is None else first
+            last = t
+            if speed is not None:
+                time.sleep(max(0.0, wall0 + (t - first) / speed - time.perf_counter()))
+            if monitor.last_scan_received is not None:
+                stale = monitor.stale(t)
+                if stale and not stale_reported:
+                    rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
+                stale_reported = bool(stale)
+            if topic == opt.points_topic:
+                monitor.add_cloud(msg, received=t)
+                n_scans += 1
+                bar.update()
+            elif topic == opt.odom_topic:
+                monitor.add_odometry(msg, received=t)
+            elif topic == opt.gt_topic:
+                try:
+                    s, pose = bag.odometry_pose(msg)
+                    gt_stamps.append(s)
+                    gt_poses.append(pose)
+                except ValueError:
+                    pass
+            elif topic == opt.tf_static_topic:
+                monitor.add_tf_static(msg)
+    except Exception as e:  # noqa: BLE001 - a broken bag is reported, the work done so far is kept
+        error = f"{type(e).__name__}: {e}"
+    finally:
+        bar.close()
+        monitor.flush()
+        monitor.close()
+        rec.close(out / "diagnostics.mcap")
+    wall = time.perf_counter() - wall0
+    records = rec.records
+    if gt_stamps:
+        _add_rpe(records, rec.poses, np.asarray(gt_stamps), np.stack(gt_poses), monitor.extrinsic)
+    summary = _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed)
+    write_reports(out, records, summary, truth=_truth(bag_path), plot=opt.plot)
+    return ReplayResult(out, records, summary)
+
+
+#: Keys of config/topometric.yaml that belong to the ROS node, not to Config (ignored by load_monitor_config).
+NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
+                   "publish_markers", "diagnostics_period_s", "use_sim_time")
+
+
+def load_monitor_config(path=None, overrides=None) -> Config:
+    """load_config for the node's parameter file too: node-only keys (NODE_PARAMETERS) are skipped,
+    any other unknown key is still an error."""
+    import yaml
+
+    from .config import _unwrap_ros, load_config
+
+    if path is None:
+        return load_config(None, overrides)
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    doc = _unwrap_ros(yaml.safe_load(p.read_text()) or {})
+    if not isinstance(doc, dict):
+        raise ValueError(f"{p}: expected a mapping at the top level")
+    from .config import apply
+
+    cfg = load_config(None, {k: v for k, v in doc.items() if k not in NODE_PARAMETERS})
+    return apply(cfg, overrides) if overrides else cfg
+
+
+def load_segmenter(config: Config):
+    """The network (pipeline.default_segmenter, loaded once), or a clear ValueError when it cannot load."""
+    from .pipeline import default_segmenter
+
+    try:
+        return default_segmenter(config.segmentation)
+    except (RuntimeError, ImportError, FileNotFoundError) as e:
+        raise ValueError(f"{e}") from None
+
+
+def _scan_count(path, topic: str) -> int | None:
+    try:
+        return bag.topics(path).get(topic, (None, None))[1]
+    except Exception:  # noqa: BLE001 - only for the progress bar
+        return None
+
+
+def _truth(path) -> dict | None:
+    from .sim.writer import load_truth
+
+    p = Path(path)
+    return load_truth(p if p.is_dir() else p.parent)
+
+
+def relative_pose_error(gt: np.ndarray, est: np.ndarray) -> float:
+    """RPE (DESIGN.md, Eq. 4, metrics.rpe) of (N, 4, 4) sensor poses."""
+    from .metrics.rpe import rpe
+
+    return float(rpe(gt, est))
+
+
+def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
+    order = np.argsort(gt_stamps, kind="stable")
+    gt_stamps, gt_poses = gt_stamps[order], gt_poses[order]
+    for rec, poses in zip(records, window_poses):
+        stamps = np.array([s for s, _ in poses])
+        gt, valid = geometry.interpolate_poses(gt_stamps, gt_poses, stamps)
+        rec["rpe"] = (relative_pose_error(gt @ extrinsic, np.stack([p for _, p in poses]))
+                      if valid.all() and len(stamps) > 1 else float("nan"))
+
+
+def _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed) -> dict:
+    levels = [r["level"] for r in records]
+    bag_s = (last - first) if first is not None else 0.0
+    c = monitor.counters
+    return {
+        "bag": str(bag_path), "mode": "deterministic" if speed is None else f"live x{speed:g}",
+        "windows": len(records), "levels": {k: levels.count(k) for k in ("OK", "WARN", "ERROR")},
+        "scans_read": n_scans, "scans_processed": c["scans_processed"], "wall_s": round(wall, 3),
+        "bag_s": round(bag_s, 3), "scans_per_s": round(c["scans_processed"] / wall, 2) if wall > 0 else None,
+        "x_realtime": round(bag_s / wall, 2) if wall > 0 else None,
+        "extrinsic_source": monitor.extrinsic_source, "counters": c, "error": error, "notes": notes,
+        "last_monitor_error": monitor.last_error,
+        "config": __import__("topometric_ros.config", fromlist=["flatten"]).flatten(monitor.config),
+    }
+
+
+# ------------------------------------------------------------------ reports
+def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | None = None,
+                  plot: bool = True) -> None:
+    """windows.csv, windows.json and (plot) metrics.png in ``out``."""
+    keys: list[str] = []
+    for r in records:
+        keys += [k for k in r if k not in keys]
+    with open(out / "windows.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys or ["index"])
+        w.writeheader()
+        for r in records:
+            w.writerow({k: _csv(v) for k, v in r.items()})
+    (out / "windows.json").write_text(json.dumps({"summary": summary, "windows": records}, indent=1,
+                                                 default=_json))
+    if plot:
+        plot_metrics(records, out / "metrics.png", truth)
+
+
+def _csv(v):
+    return f"{v:.6g}" if isinstance(v, float) else v
+
+
+def _json(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    raise TypeError(f"not JSON serialisable: {type(v)}")
+
+
+LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
+
+
+def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> None:
+    """PNE and CPV (and RPE) per window over bag time, WARN/ERROR windows shaded, thresholds dashed,
+    simulated drift episodes (truth.json) hatched."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)")]
+    if any(np.isfinite(r.get("rpe", np.nan)) for r in records):
+        rows.append(("rpe", "RPE"))
+    fig, axes = plt.subplots(len(rows), 1, figsize=(11, 2.6 * len(rows)), sharex=True, squeeze=False)
+    t0 = records[0]["start"] if records else 0.0
+    t = np.array([r["end"] - t0 for r in records])
+    for ax, (key, label) in zip(axes[:, 0], rows):
+        for r, nxt in zip(records, records[1:] + [None]):
+            if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
+                right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
+                ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
+        for ep in (truth or {}).get("episodes", []):
+            ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
+        ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3)
+        if key in ("pne", "cpv"):
+            ax.plot(t, [r.get(f"{key}_warn_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["WARN"], lw=1)
+            ax.plot(t, [r.get(f"{key}_error_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["ERROR"], lw=1)
+        if key == "cpv" and any(r.get("cpv", 0) > 0 for r in records):
+            ax.set_yscale("log")  # a variance: drift multiplies it
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("bag time of window end (s)")
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color=c, alpha=0.35, label=k) for k, c in LEVEL_COLOURS.items()]
+    if truth and truth.get("episodes"):
+        handles.append(Patch(facecolor="none", edgecolor="grey", hatch="//", label="drift episode (truth)"))
+    axes[0, 0].legend(handles=handles, loc="upper right", fontsize=8)
+    fig.suptitle("topometric: map consistency per window")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
+    """The window table (alarms always shown; OK rows thinned beyond max_rows) and the summary lines."""
+    t0 = records[0]["start"] if records else 0.0
+    has_rpe = any("rpe" in r for r in records)
+    head = f"{'win':>4} {'t_end s':>8} {'PNE':>8} {'CPV':>10} {'planes':>6}" + (f" {'RPE':>7}" if has_rpe else "")
+    lines = [head + "  level  reason"]
+    step = max(1, len(records) // max_rows)
+    for i, r in enumerate(records):
+        if r["level"] == "OK" and i % step:
+            continue
+        row = f"{r['index']:>4} {r['end'] - t0:>8.1f} {r['pne']:>8.4f} {r['cpv']:>10.3g} {r['n_planes']:>6}"
+        if has_rpe:
+            row += f" {r.get('rpe', float('nan')):>7.4f}"
+        lines.append(f"{row}  {r['level']:<5}  {r['message']}")
+    s, c = summary, summary["counters"]
+    lines += ["", f"windows        {s['windows']}  (OK {s['levels']['OK']}, WARN {s['levels']['WARN']}, "
+              f"ERROR {s['levels']['ERROR']})",
+              f"scans          {s['scans_read']} read, {s['scans_processed']} processed, {c['dropped_scans']} dropped "
+              f"(no pose {c['dropped_no_pose']}, queue {c['dropped_queue_full']}, bad {c['dropped_bad_scan']}, "
+              f"duplicate {c['dropped_duplicate']}, errors {c['scan_errors']})",
+              f"speed          {s['scans_per_s']} scans/s, {s['x_realtime']}x real time ({s['mode']}, "
+              f"{s['wall_s']:.1f} s wall for {s['bag_s']:.1f} s of bag)",
+              f"extrinsic      from {s['extrinsic_source']}"]
+    if s["notes"]:
+        lines.append("notes          " + "; ".join(s["notes"]))
+    if s["error"]:
+        lines.append(f"ERROR          {s['error']} (reports hold what was processed before it)")
+    return "\n".join(lines)
