@@ -28,9 +28,10 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.6",
         "pyyaml>=6.0",
+        "mcap>=1.1",  # replay reads a truncated MCAP bag up to the break
     ],
     extras_require={
-        "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap>=1.1", "mcap-ros2-support>=0.5",
+        "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap-ros2-support>=0.5",
                  "evo>=1.20"],
     },
     entry_points={

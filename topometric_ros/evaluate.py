@@ -52,7 +52,7 @@ class ExperimentSpec:
     @classmethod
     def quick(cls) -> "ExperimentSpec":
         """A tiny run for CI: one office room, one trajectory, window 5 only, ground-truth labels."""
-        return cls(scenes=("office1",), trajectories=1, frames=50, windows=(5,), labels=("gt",), baseline_windows=1)
+        return cls(scenes=("office1",), trajectories=1, frames=100, windows=(5,), labels=("gt",), baseline_windows=1)
 
 
 # ---------------------------------------------------------------- per-scan work (once per trajectory)
