@@ -12,26 +12,14 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import median_ms, record, single_core
 
-REFERENCE = Path(os.environ.get("TOPOMETRIC_MAPMETRICS_DATA", "/work/shared/peer/map-metrics-depth"))
-REF_MME, REF_MPV = -3.6144387057257523, 0.0025390347963358565
 #: windows (scene -> scan counts) whose exact value is computed too (exact cost grows with the square of
 #: the density: 5 floor2 scans hold ~5e9 neighbour pairs, minutes on one core)
 EXACT = {"garage": (5,)}
-
-
-def _read_ply(path: Path) -> np.ndarray:
-    with open(path, "rb") as f:
-        n = 0
-        while (line := f.readline().decode().strip()) != "end_header":
-            if line.startswith("element vertex"):
-                n = int(line.split()[-1])
-        return np.frombuffer(f.read(24 * n), dtype="<f8").reshape(n, 3).copy()
 
 
 def _timed(fn):
@@ -44,12 +32,14 @@ def reference(results: dict, repeats: int = 5) -> None:
     from topometric_ros.metrics.mme import mme
     from topometric_ros.metrics.mpv import mpv
 
-    if not (REFERENCE / "pcs").is_dir():
-        results["reference"] = f"skipped: no data at {REFERENCE}"
+    from topometric_ros.metrics import reference_data
+
+    data = reference_data.load()
+    if data is None:
+        results["reference"] = f"skipped: no data at {reference_data.folder()}"
         return
-    names = sorted(p.stem[3:] for p in (REFERENCE / "pcs").glob("PC-*.ply"))
-    clouds = [_read_ply(REFERENCE / "pcs" / f"PC-{n}.ply") for n in names]
-    poses = np.stack([np.loadtxt(REFERENCE / "poses" / f"pose-{n}.txt") for n in names])
+    clouds, poses, _ = data
+    REF_MME, REF_MPV = reference_data.REF_MME, reference_data.REF_MPV
     for name, fn, ref in (("mme", mme, REF_MME), ("mpv", mpv, REF_MPV)):
         value = fn(clouds, poses, radius=0.2)
         med, samples = median_ms(lambda: fn(clouds, poses, radius=0.2), repeats=repeats, warmup=1)

@@ -1,8 +1,6 @@
 """MME, MPV, MOM: map-metrics' reference values, brute-force neighbourhoods, analytic cases, invariances."""
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,33 +10,17 @@ from topometric_ros.metrics import _neighbours as nb
 from topometric_ros.metrics.mme import entropies, mme
 from topometric_ros.metrics.mom import extract_orthogonal_subsets, mom
 from topometric_ros.metrics.mpv import mme_mpv, mpv
+from topometric_ros.metrics import reference_data as ref
+from topometric_ros.metrics.reference_data import REF_MME, REF_MOM, REF_MPV
 
-REFERENCE = Path(os.environ.get("TOPOMETRIC_MAPMETRICS_DATA", "/work/shared/peer/map-metrics-depth"))
-# map-metrics 0.0.4/0.0.5 on its depth test data, radius 0.2 m (REFERENCE/README.md)
-REF_MME, REF_MPV, REF_MOM = -3.6144387057257523, 0.0025390347963358565, 0.0061830823367133685
-
-
-def _read_ply(path: Path) -> np.ndarray:
-    """Binary little-endian PLY with float64 x, y, z only."""
-    with open(path, "rb") as f:
-        n = 0
-        while (line := f.readline().decode().strip()) != "end_header":
-            if line.startswith("element vertex"):
-                n = int(line.split()[-1])
-        return np.frombuffer(f.read(24 * n), dtype="<f8").reshape(n, 3).copy()
 
 
 @pytest.fixture(scope="module")
 def reference():
-    if not (REFERENCE / "pcs").is_dir():
-        pytest.skip(f"map-metrics reference data not found at {REFERENCE}")
-    names = sorted(p.stem[3:] for p in (REFERENCE / "pcs").glob("PC-*.ply"))
-    clouds = [_read_ply(REFERENCE / "pcs" / f"PC-{n}.ply") for n in names]
-    poses = np.stack([np.loadtxt(REFERENCE / "poses" / f"pose-{n}.txt") for n in names])
-    t = geometry.inverse(poses[0]) @ poses[names.index("0091")]
-    orth = [geometry.transform_points(t, np.asarray(s, np.float64))
-            for s in np.load(REFERENCE / "orth-0091.npy", allow_pickle=True)]
-    return clouds, poses, orth
+    data = ref.load()
+    if data is None:
+        pytest.skip(f"map-metrics reference data not found at {ref.folder()}")
+    return data
 
 
 def test_reference_values_of_map_metrics(reference):

@@ -224,6 +224,11 @@ def load_runs(spec: ExperimentSpec, out: Path) -> list[tuple[tuple, dict[str, np
     return [(j, _read_csv(out / "runs" / f"{_job_name(*j)}.csv")) for j in jobs(spec)]
 
 
+def _select(runs, labels: str, win: int, noise: str, scale: float) -> list[dict[str, np.ndarray]]:
+    """The per-window tables of every trajectory run under one setting."""
+    return [d for (lab, _, _, w, n, s), d in runs if lab == labels and w == win and n == noise and s == scale]
+
+
 def correlation_table(spec: ExperimentSpec, runs) -> list[dict]:
     """Rows (labels, noise, scale, metric, n, pearson, spearman, kendall): windows pooled over scenes and
     trajectories, at the correlation window size. Baseline rows use the windows that have baselines."""
@@ -233,8 +238,7 @@ def correlation_table(spec: ExperimentSpec, runs) -> list[dict]:
     for labels in spec.labels:
         for noise in spec.noises:
             for scale in spec.scales:
-                sel = [d for (lab, _, _, win, n, s), d in runs
-                       if lab == labels and win == spec.correlation_window and n == noise and s == scale]
+                sel = _select(runs, labels, spec.correlation_window, noise, scale)
                 rpe = np.concatenate([d["rpe"] for d in sel])
                 for metric in METRICS:
                     if metric in BASELINES and labels != spec.labels[0]:
@@ -255,8 +259,7 @@ def multirelation_table(spec: ExperimentSpec, runs) -> list[dict]:
     for labels in spec.labels:
         for noise in spec.noises:
             for scale in spec.scales:
-                sel = [d for (lab, _, _, win, n, s), d in runs
-                       if lab == labels and win == spec.correlation_window and n == noise and s == scale]
+                sel = _select(runs, labels, spec.correlation_window, noise, scale)
                 cat = {k: np.concatenate([d[k] for d in sel]) for k in ("pne", "cpv", "rpe")}
                 rows.append({"labels": labels, "noise": noise, "scale": scale, "n": len(cat["rpe"]),
                              "mr_pne_cpv_rpe": multi_relation(cat["pne"], cat["cpv"], cat["rpe"]),
