@@ -16,17 +16,13 @@ from benchmarks.common import median_ms, record, single_core
 
 def cached_scans(scene: str, n: int):
     """(scans with planes, plane source) for n consecutive simulated scans."""
-    from topometric_ros import planes
     from topometric_ros.config import load_config
-    from topometric_ros.pipeline import ProcessedScan, process_scan
+    from topometric_ros.pipeline import process_scan
     from topometric_ros.sim.frames import simulated_frames
 
-    frames, instances = simulated_frames(scene, n, seed=0)
-    if hasattr(planes, "detect_planes"):
-        cfg = load_config(overrides={"segmentation.mode": "labels"})
-        return [process_scan(f, cfg, index=k) for k, f in enumerate(frames)], "detect_planes"
-    return [ProcessedScan(f.stamp, f.pose, planes.planes_from_instances(f.points, f.labels, i, frame=k))
-            for k, (f, i) in enumerate(zip(frames, instances))], "oracle"
+    frames, _ = simulated_frames(scene, n, seed=0)
+    cfg = load_config(overrides={"segmentation.mode": "labels"})
+    return [process_scan(f, cfg, index=k) for k, f in enumerate(frames)], "detect_planes"
 
 
 def main(repeats: int = 30) -> dict:

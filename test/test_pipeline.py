@@ -1,7 +1,6 @@
 """The pipeline: per-scan processing by segmentation mode, window scoring, the per-stamp cache, the facade."""
 from __future__ import annotations
 
-import importlib.util
 
 import numpy as np
 import pytest
@@ -78,17 +77,15 @@ def test_network_mode_uses_the_segmenter(frames, processed):
     assert {p.cls for p in scan.planes} == {p.cls for p in processed[0].planes}
 
 
-@pytest.mark.skipif(importlib.util.find_spec("topometric_ros.segmentation") is not None,
-                    reason="the segmentation package exists: the default segmenter can load")
-def test_network_mode_without_a_segmenter_says_what_is_missing(frames):
-    with pytest.raises(RuntimeError, match="Segmenter"):
-        process_scan(frames[0], load_config(overrides={"segmentation.mode": "network"}))
-
-
-def test_unknown_mode_is_an_error(frames):
-    cfg = load_config(overrides={"segmentation.mode": "oracle"})
-    with pytest.raises(ValueError, match="unknown segmentation mode"):
+def test_network_mode_with_missing_weights_says_which_file(frames, tmp_path):
+    cfg = load_config(overrides={"segmentation.weights": str(tmp_path / "nope.pt")})
+    with pytest.raises(ValueError, match="nope.pt"):
         process_scan(frames[0], cfg)
+
+
+def test_unknown_mode_is_a_config_error():
+    with pytest.raises(ValueError, match="must be one of network, labels, none"):
+        load_config(overrides={"segmentation.mode": "oracle"})
 
 
 def test_voxel_downsampling_thins_the_scan_before_segmentation(frames):

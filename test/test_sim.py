@@ -12,7 +12,7 @@ from topometric_ros.sim.drift import (BASE_DRIFT_ROT_DEG_S, BASE_DRIFT_TRANS_M_S
 from topometric_ros.sim.lidar import Lidar, LidarSpec
 from topometric_ros.sim.scenes import make_scene
 from topometric_ros.sim.trajectory import free_space, random_trajectory
-from topometric_ros.sim.writer import SimConfig, simulate, simulate_split
+from topometric_ros.sim.writer import SimConfig, simulate
 
 SENSOR_HEIGHT = 1.0
 

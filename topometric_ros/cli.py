@@ -48,7 +48,7 @@ def _monitor_config(args: argparse.Namespace):
     """Config from --config, then --set KEY=VALUE pairs, then the dedicated flags."""
     import yaml
 
-    from .replay import load_monitor_config
+    from .config import load_config
 
     over = {}
     for item in getattr(args, "set", None) or []:
@@ -60,7 +60,7 @@ def _monitor_config(args: argparse.Namespace):
         over["window.size"] = args.window_size
     if getattr(args, "segmentation", None):
         over["segmentation.mode"] = args.segmentation
-    return load_monitor_config(getattr(args, "config", None), over)
+    return load_config(getattr(args, "config", None), over)
 
 
 def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None) -> None:

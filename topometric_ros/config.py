@@ -113,6 +113,14 @@ class Config:
     health: HealthConfig = field(default_factory=HealthConfig)
 
 
+#: Keys of config/topometric.yaml that belong to the ROS node (topics, QoS, ...), not to Config: skipped here.
+NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
+                   "publish_markers", "diagnostics_period_s", "use_sim_time")
+#: Leaves that take one of a few strings.
+CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
+           "planes.detector": ("ring", "open3d")}
+
+
 def _unwrap_ros(doc: Mapping[str, Any]) -> Mapping[str, Any]:
     """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters."""
     if len(doc) == 1:
@@ -152,6 +160,8 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
             changes[key] = apply(current, value, f"{name}.")
         else:
             changes[key] = _coerce(name, current, value)
+            if name in CHOICES and changes[key] not in CHOICES[name]:
+                raise ValueError(f"config key {name!r} must be one of {', '.join(CHOICES[name])}, got {value!r}")
     return replace(obj, **changes)
 
 
@@ -180,8 +190,8 @@ def flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
-    """Defaults, then the YAML file at ``path`` (plain or ROS 2 parameter file), then ``overrides``
-    (nested or dotted keys, e.g. {'window.size': 10})."""
+    """Defaults, then the YAML file at ``path`` (plain or ROS 2 parameter file; the node-only keys of
+    NODE_PARAMETERS are skipped), then ``overrides`` (nested or dotted keys, e.g. {'window.size': 10})."""
     import yaml
 
     cfg = Config()
@@ -192,7 +202,8 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
         doc = yaml.safe_load(p.read_text()) or {}
         if not isinstance(doc, Mapping):
             raise ValueError(f"{p}: expected a mapping at the top level")
-        cfg = apply(cfg, _unwrap_ros(doc))
+        params = _unwrap_ros(doc)
+        cfg = apply(cfg, {k: v for k, v in params.items() if k not in NODE_PARAMETERS})
     if overrides:
         cfg = apply(cfg, overrides)
     return cfg

@@ -107,14 +107,14 @@ def _run_job(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int
     """Score every window of one trajectory under one setting; writes OUT/runs/<job>.csv."""
     from .config import load_config
     from .metrics.rpe import rpe, rpe_parts
-    from .pipeline import score_window
+    from .pipeline import baselines, score_window
 
     _single_thread()
     path = out / "runs" / f"{_job_name(labels, scene, traj, win, noise, scale)}.csv"
     if path.exists():
         return path
     scans = pickle.loads(_scan_cache(out, scene, traj, labels, spec).read_bytes())
-    config = load_config()
+    config = load_config(overrides={"metrics.radius": spec.radius})  # fast MME/MPV (exact_baselines off)
     n_windows = len(scans) // win
     job_seed = [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene))]
     rng = np.random.default_rng(job_seed)
@@ -136,25 +136,11 @@ def _run_job(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int
         row.update({m: np.nan for m in BASELINES})
         row.update({f"t_{m}_ms": np.nan for m in BASELINES})
         if w in with_baselines:
-            row.update(_baselines([f.points for f in frames[w * win:(w + 1) * win]], est, spec.radius))
+            values = baselines([f.points for f in frames[w * win:(w + 1) * win]], est, config.metrics)
+            row.update({k if k in BASELINES else f"{k}_ms": v for k, v in values.items()})
         rows.append(row)
     _write_csv(path, rows)
     return path
-
-
-def _baselines(clouds: list[np.ndarray], poses: np.ndarray, radius: float) -> dict:
-    """MME and MPV (one shared neighbourhood pass, fast mode; each gets half its time) and MOM of one window,
-    with times in ms."""
-    from .metrics.mom import mom
-    from .metrics.mpv import mme_mpv
-
-    t = time.perf_counter()
-    row = dict(zip(("mme", "mpv"), map(float, mme_mpv(clouds, poses, radius=radius, exact=False))))
-    row["t_mme_ms"] = row["t_mpv_ms"] = 500 * (time.perf_counter() - t)
-    t = time.perf_counter()
-    row["mom"] = float(mom(clouds, poses, radius=radius))  # NaN when no orthogonal planes are found
-    row["t_mom_ms"] = 1000 * (time.perf_counter() - t)
-    return row
 
 
 def _single_thread() -> None:
@@ -438,7 +424,7 @@ def spearman_pivot(spec: ExperimentSpec, tables: dict, labels: str) -> str:
 
 def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
     """OUT/REPORT.md: data, noise levels, tables, the paper's claims checked, figures."""
-    text = [f"# Noise experiment: map-consistency metrics against RPE\n",
+    text = ["# Noise experiment: map-consistency metrics against RPE\n",
             f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} trajectories each "
             f"(seeds {TRAJECTORY_SEED0}..), {spec.frames} scans per trajectory. Windows of {', '.join(map(str, spec.windows))} "
             f"scans, step = size; correlations at window {spec.correlation_window}.",

@@ -25,6 +25,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -34,6 +35,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from . import config as config_module
+from .config import CHOICES
 from .health import diagnostic_array, diagnostic_status, window_values
 from .monitor import Monitor
 
@@ -54,8 +56,6 @@ RANGES = {
     "health.pne_warn": (-1e3, 1e3), "health.pne_error": (-1e3, 1e3),
     "health.cpv_warn": (0.0, 1e6), "health.cpv_error": (0.0, 1e6), "health.min_planes": (0, 1_000_000),
 }
-CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
-           "planes.detector": ("ring", "open3d")}
 QOS_CHOICES = ("sensor_data", "reliable")
 
 
@@ -70,7 +70,8 @@ def config_descriptions() -> dict[str, str]:
 
 
 def _descriptor(name: str, value, description: str) -> ParameterDescriptor:
-    d = ParameterDescriptor(name=name, description=description, read_only=True)
+    # dynamic typing: YAML "5" for a float leaf must not kill the node; load_config converts and checks types
+    d = ParameterDescriptor(name=name, description=description, read_only=True, dynamic_typing=True)
     if name in RANGES and isinstance(value, (int, float)) and not isinstance(value, bool):
         lo, hi = RANGES[name]
         if isinstance(value, float):
@@ -237,7 +238,7 @@ def main(args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as e:  # a bad parameter: a clear message, not a traceback
+    except (ValueError, ParameterException) as e:  # a bad parameter: a clear message, not a traceback
         print(f"{NODE_NAME}: {e}", file=sys.stderr)
         return 2
     finally:

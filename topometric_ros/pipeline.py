@@ -100,11 +100,8 @@ def default_segmenter(seg_config):
     """The shipped network for ``config.segmentation`` (loaded once per distinct setting)."""
     key = astuple(seg_config)
     if key not in _SEGMENTERS:
-        try:
-            from .segmentation.infer import Segmenter
-        except ImportError as exc:
-            raise RuntimeError("segmentation mode 'network' needs topometric_ros.segmentation.infer.Segmenter, "
-                               f"which is not available ({exc}); use segmentation.mode 'labels' or 'none'") from exc
+        from .segmentation.infer import Segmenter
+
         _SEGMENTERS[key] = Segmenter.from_config(seg_config)
     return _SEGMENTERS[key]
 
@@ -116,20 +113,16 @@ def voxel_indices(points: np.ndarray, size: float) -> np.ndarray:
     return np.sort(first)
 
 
-def scan_labels(frame: Frame, points: np.ndarray, ring, intensity, config: Config, segmenter=None) -> np.ndarray:
-    """(N,) uint8 class per point by ``config.segmentation.mode``: labels | none | network."""
-    mode = config.segmentation.mode
-    if mode == "labels":
-        if frame.labels is None:
-            raise ValueError("segmentation mode 'labels' needs a cloud with a label field; this scan has none")
-        return frame.labels
-    if mode == "none":
-        return np.full(len(points), NONE_MODE_CLASS, np.uint8)
-    if mode == "network":
-        segmenter = segmenter if segmenter is not None else default_segmenter(config.segmentation)
-        labels, _ = segmenter.predict(points, ring, intensity)
-        return np.asarray(labels, np.uint8)
-    raise ValueError(f"unknown segmentation mode {mode!r}; known: network, labels, none")
+def scan_labels(frame: Frame, config: Config, segmenter=None) -> np.ndarray:
+    """(N,) uint8 class per point by ``config.segmentation.mode`` (segmentation.infer.segment_frame: network,
+    the cloud's labels, or none = every point NONE_MODE_CLASS)."""
+    from .segmentation.infer import segment_frame
+
+    seg = config.segmentation
+    if seg.mode == "network" and segmenter is None:
+        segmenter = default_segmenter(seg)
+    labels, _ = segment_frame(frame, seg, segmenter)
+    return np.full(len(frame.points), NONE_MODE_CLASS, np.uint8) if labels is None else labels
 
 
 def process_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) -> ProcessedScan:
@@ -152,7 +145,7 @@ def process_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) 
                                                               for a in (labels, ring, intensity)))
             labels, ring, intensity = frame.labels, frame.ring, frame.intensity
     with timer("segment"):
-        labels = scan_labels(frame, points, ring, intensity, config, segmenter)
+        labels = scan_labels(frame, config, segmenter)
     with timer("planes"):
         found = planes_mod.detect_planes(points, labels, ring, config.planes, frame=index)
     timings["total"] = 1000.0 * (time.perf_counter() - start)
@@ -218,26 +211,35 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     result = WindowResult(stamps=[s.stamp for s in scans], pne=pne, cpv=cpv, n_planes=len(wp.counts),
                           n_groups=n_groups, n_clusters=n_clusters, timings=timings)
     if config.metrics.baselines:
-        _baselines(result, scans, poses, config, timer)
+        _baselines(result, scans, poses, config)
     timings["total"] = 1000.0 * (time.perf_counter() - start)
     return result
 
 
-def _baselines(result: WindowResult, scans: Sequence[ProcessedScan], poses: np.ndarray, config: Config,
-               timer: _Timer) -> None:
-    """MME, MPV, MOM (map-metrics definitions) on the scans' sensor-frame points and window-relative poses."""
+def baselines(clouds: Sequence[np.ndarray], poses: np.ndarray, m) -> dict[str, float]:
+    """MME, MPV (one shared neighbourhood pass) and MOM (map-metrics definitions; MOM keeps map-metrics' own
+    neighbour threshold, > 3) of sensor-frame clouds and window-relative poses, with 'mme', 'mpv', 'mom' times
+    in ms under 't_*'. ``m``: MetricsConfig (radius, min_neighbours, exact_baselines)."""
+    from .metrics.mom import mom
+    from .metrics.mpv import mme_mpv
+
+    start = time.perf_counter()
+    out = dict(zip(("mme", "mpv"), map(float, mme_mpv(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))))
+    out["t_mme"] = out["t_mpv"] = 500.0 * (time.perf_counter() - start)  # one pass, half each
+    start = time.perf_counter()
+    out["mom"] = float(mom(clouds, poses, m.radius))  # NaN when no three orthogonal planes are found
+    out["t_mom"] = 1000.0 * (time.perf_counter() - start)
+    return out
+
+
+def _baselines(result: WindowResult, scans: Sequence[ProcessedScan], poses: np.ndarray, config: Config) -> None:
+    """Fill result.mme / mpv / mom and their timings from the scans' kept points."""
     clouds = [s.points for s in scans]
     if any(c is None for c in clouds):
         raise ValueError("baselines need the scans' points: process them with config.metrics.baselines on")
-    from .metrics import mme, mom, mpv
-
-    m = config.metrics
-    with timer("mme"):
-        result.mme = float(mme.mme(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))
-    with timer("mpv"):
-        result.mpv = float(mpv.mpv(clouds, poses, m.radius, m.min_neighbours, m.exact_baselines))
-    with timer("mom"):
-        result.mom = float(mom.mom(clouds, poses, m.radius))
+    values = baselines(clouds, poses, config.metrics)
+    result.mme, result.mpv, result.mom = values["mme"], values["mpv"], values["mom"]
+    result.timings.update({k: values[f"t_{k}"] for k in ("mme", "mpv", "mom")})
 
 
 def evaluate_window(frames: Sequence[Frame], config: Config | None = None, cache: dict | None = None,

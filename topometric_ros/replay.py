@@ -239,32 +239,6 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     return ReplayResult(out, records, summary)
 
 
-#: Keys of config/topometric.yaml that belong to the ROS node, not to Config (ignored by load_monitor_config).
-NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
-                   "publish_markers", "diagnostics_period_s", "use_sim_time")
-
-
-def load_monitor_config(path=None, overrides=None) -> Config:
-    """load_config for the node's parameter file too: node-only keys (NODE_PARAMETERS) are skipped,
-    any other unknown key is still an error."""
-    import yaml
-
-    from .config import _unwrap_ros, load_config
-
-    if path is None:
-        return load_config(None, overrides)
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"config file not found: {p}")
-    doc = _unwrap_ros(yaml.safe_load(p.read_text()) or {})
-    if not isinstance(doc, dict):
-        raise ValueError(f"{p}: expected a mapping at the top level")
-    from .config import apply
-
-    cfg = load_config(None, {k: v for k, v in doc.items() if k not in NODE_PARAMETERS})
-    return apply(cfg, overrides) if overrides else cfg
-
-
 def load_segmenter(config: Config):
     """The network (pipeline.default_segmenter, loaded once), or a clear ValueError when it cannot load."""
     from .pipeline import default_segmenter

@@ -25,7 +25,7 @@ SHIPPED = Path(__file__).resolve().parent / "weights" / WEIGHTS_NAME
 Scan = tuple  # (points (N, 3) float32, ring (N,) | None, intensity (N,) | None)
 
 
-class SegmentationError(RuntimeError):
+class SegmentationError(ValueError):
     """Weights that are missing, unreadable, tampered with or do not fit the network; bad device."""
 
 
