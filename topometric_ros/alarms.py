@@ -127,10 +127,9 @@ def _write(out: Path, table: dict) -> None:
                         " ".join("-" if x is None else str(x) for x in r["latencies"])])
         fr = table["drift_free"]
         w.writerow(["drift-free", "none", 0, 0, 0, f"{fr['false_warn_windows']} false WARN in {fr['minutes']:.1f} min"])
-    import matplotlib
+    from .reports import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 3.2))
     labels = [f"{r['mode']}×{r['scale']:g}" for r in table["rows"]]

@@ -176,10 +176,9 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
 
 
 def _plot_plane_quality(res: dict, path: Path) -> None:
-    import matplotlib
+    from .reports import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     scenes = list(res["scenes"])
     x = range(len(scenes))

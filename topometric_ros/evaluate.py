@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import geometry
+from .reports import pyplot, write_csv
 from .sim.drift import BASE_NOISE_ROT_DEG, BASE_NOISE_TRANS_M
 
 METRICS = ("mme", "mpv", "mom", "pne", "cpv")
@@ -139,7 +140,7 @@ def _run_job(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int
             values = baselines([f.points for f in frames[w * win:(w + 1) * win]], est, config.metrics)
             row.update({k if k in BASELINES else f"{k}_ms": v for k, v in values.items()})
         rows.append(row)
-    _write_csv(path, rows)
+    write_csv(path, rows)
     return path
 
 
@@ -149,18 +150,6 @@ def _single_thread() -> None:
 
     torch.set_num_threads(1)
     o3d.utility.set_max_threads(1)
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    import csv
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(path)
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
@@ -278,7 +267,7 @@ def write_tables(spec: ExperimentSpec, out: Path) -> dict:
               "timing": timing_table(spec, runs)}
     paths = {}
     for name, rows in tables.items():
-        _write_csv(out / f"{name}.csv", rows)
+        write_csv(out / f"{name}.csv", rows)
         paths[name] = str(out / f"{name}.csv")
     paths.update(figures(spec, tables, runs, out))
     paths["report"] = str(report(spec, tables, paths, out))
@@ -291,19 +280,10 @@ def default_workers() -> int:
 
 # ---------------------------------------------------------------- figures and report
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
     """PNGs in the paper's style: grouped correlation bars (Figs. 8-10), Multi-relation (Fig. 11), time per
     window size (Fig. 12), and PNE/CPV-vs-RPE scatter plots."""
-    plt = _pyplot()
+    plt = pyplot()
     paths = {}
     corr = tables["correlations"]
     for labels in spec.labels:
@@ -373,7 +353,7 @@ def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
 
 def _save(fig, path: Path) -> str:
     fig.savefig(path, dpi=110)
-    _pyplot().close(fig)
+    pyplot().close(fig)
     return str(path)
 
 

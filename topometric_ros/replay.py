@@ -12,7 +12,6 @@ A bag that breaks mid-file (truncated) is reported in the summary; what was proc
 """
 from __future__ import annotations
 
-import csv
 import json
 import shutil
 import threading
@@ -27,6 +26,7 @@ from . import bag, geometry
 from .config import Config
 from .health import diagnostic_array, diagnostic_status, window_values
 from .monitor import Monitor
+from .reports import write_csv
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
@@ -303,11 +303,7 @@ def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | N
     keys: list[str] = []
     for r in records:
         keys += [k for k in r if k not in keys]
-    with open(out / "windows.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys or ["index"])
-        w.writeheader()
-        for r in records:
-            w.writerow({k: _csv(v) for k, v in r.items()})
+    write_csv(out / "windows.csv", [{k: _csv(r.get(k, "")) for k in keys} for r in records])
     (out / "windows.json").write_text(json.dumps({"summary": summary, "windows": records}, indent=1,
                                                  default=_json))
     if plot:
@@ -330,10 +326,9 @@ LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
 def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> None:
     """PNE and CPV (and RPE) per window over bag time, WARN/ERROR windows shaded, thresholds dashed,
     simulated drift episodes (truth.json) hatched."""
-    import matplotlib
+    from .reports import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)")]
     if any(np.isfinite(r.get("rpe", np.nan)) for r in records):

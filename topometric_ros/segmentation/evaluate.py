@@ -6,7 +6,6 @@ of segmentation including projection and back-projection (median over scans).
 """
 from __future__ import annotations
 
-import csv
 import json
 import statistics
 import time
@@ -16,6 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from .. import classes as C
+from ..reports import write_csv
 from .data import read_scans, scene_of
 from .metrics import accuracy, confusion, iou_per_class, miou
 
@@ -66,16 +66,10 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
     rows = [summary_row(f"bag:{Path(b).name}", c) for b, c in result["bags"].items()]
     rows += [summary_row(f"scene:{s}", c) for s, c in result["scenes"].items()]
     rows.append(summary_row("all", result["all"]))
-    with open(out / "per_class_iou.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "per_class_iou.csv", rows)
     conf = result["all"]
-    with open(out / "confusion.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["truth\\pred", *C.NAMES])
-        for c, name in enumerate(C.NAMES):
-            w.writerow([name, *conf[c].tolist()])
+    write_csv(out / "confusion.csv", [{"truth\\pred": name, **dict(zip(C.NAMES, conf[c].tolist()))}
+                                      for c, name in enumerate(C.NAMES)])
     plot_confusion(conf, out / "confusion.png", title)
     ms = result["scan_ms"]
     speed = {"scans": len(ms)}
@@ -91,10 +85,9 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
 
 def plot_confusion(conf: np.ndarray, path: str | Path, title: str = "") -> None:
     """Row-normalised confusion matrix (% of each true class), like the paper's Fig. 6."""
-    import matplotlib
+    from ..reports import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     with np.errstate(invalid="ignore", divide="ignore"):
         norm = 100 * conf / conf.sum(1, keepdims=True)
