@@ -88,7 +88,8 @@ def corrupt(msg, how, rng):
     elif how == "point_step":
         m.point_step = int(rng.integers(0, 3 * m.point_step + 2))
     elif how == "width":
-        m.width = m.width + int(rng.integers(1, 5))
+        # more points than a row holds (a bigger width can still fit in padded rows: that is valid)
+        m.width = m.row_step // m.point_step + int(rng.integers(1, 5))
     elif how == "height":
         m.height = m.height + int(rng.integers(1, 5))
     elif how == "row_step":
