@@ -15,7 +15,8 @@ from topometric_ros import classes, geometry
 from topometric_ros.bag import BagError
 from topometric_ros.config import load_config
 from topometric_ros.pipeline import ProcessedScan, WindowResult
-from topometric_ros.replay import ReplayOptions, relative_pose_error, replay
+from topometric_ros.metrics.rpe import rpe as relative_pose_error
+from topometric_ros.replay import ReplayOptions, replay
 
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 

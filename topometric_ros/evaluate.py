@@ -14,7 +14,6 @@ and jobs run in a process pool.
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -272,10 +271,6 @@ def write_tables(spec: ExperimentSpec, out: Path) -> dict:
     paths.update(figures(spec, tables, runs, out))
     paths["report"] = str(report(spec, tables, paths, out))
     return paths
-
-
-def default_workers() -> int:
-    return max(1, min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 
 
 # ---------------------------------------------------------------- figures and report

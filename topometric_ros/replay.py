@@ -263,20 +263,15 @@ def _truth(path) -> dict | None:
     return load_truth(p if p.is_dir() else p.parent)
 
 
-def relative_pose_error(gt: np.ndarray, est: np.ndarray) -> float:
-    """RPE (DESIGN.md, Eq. 4, metrics.rpe) of (N, 4, 4) sensor poses."""
+def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
     from .metrics.rpe import rpe
 
-    return float(rpe(gt, est))
-
-
-def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
     order = np.argsort(gt_stamps, kind="stable")
     gt_stamps, gt_poses = gt_stamps[order], gt_poses[order]
     for rec, poses in zip(records, window_poses):
         stamps = np.array([s for s, _ in poses])
         gt, valid = geometry.interpolate_poses(gt_stamps, gt_poses, stamps)
-        rec["rpe"] = (relative_pose_error(gt @ extrinsic, np.stack([p for _, p in poses]))
+        rec["rpe"] = (rpe(gt @ extrinsic, np.stack([p for _, p in poses]))
                       if valid.all() and len(stamps) > 1 else float("nan"))
 
 
