@@ -13,11 +13,13 @@ and jobs run in a process pool.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +31,7 @@ from .sim.drift import BASE_NOISE_ROT_DEG, BASE_NOISE_TRANS_M
 METRICS = ("mme", "mpv", "mom", "pne", "cpv")
 BASELINES = ("mme", "mpv", "mom")
 NOISE_SIGMAS = {"r": (1.0, 0.0), "t": (0.0, 1.0), "rt": (1.0, 1.0)}  # which of (rotation, translation) is on
+BASELINE_JOB = "baselines"  # the job kind that computes MME/MPV/MOM (label independent)
 TRAJECTORY_SEED0 = 2000  # evaluation trajectories: seeds 2000.. (training bags use 0.. and 1000..)
 
 
@@ -66,7 +69,7 @@ def _frames(scene: str, traj: int, spec: ExperimentSpec):
 
 def _scan_cache(out: Path, scene: str, traj: int, labels: str, spec: ExperimentSpec) -> Path:
     """Pickle of the trajectory's ProcessedScans (planes only, no points); computed once."""
-    path = out / "cache" / f"{scene}_{traj}_{labels}.pkl"
+    path = out / "cache" / f"{scene}_{traj}_{_label_tag(labels)}.pkl"
     if path.exists():
         return path
     from .config import load_config
@@ -98,49 +101,92 @@ def _perturb(poses: np.ndarray, noise: str, scale: float, rng: np.random.Generat
     return poses @ noise_t
 
 
-def _job_name(labels: str, scene: str, traj: int, win: int, noise: str, scale: float) -> str:
-    return f"{labels}_{scene}_{traj}_w{win}_{noise}_{scale:g}"
+def _label_tag(labels: str) -> str:
+    """Name of a label source in cached files: 'network' carries the shipped weights' digest, so new weights
+    recompute its scans and jobs while ground truth and baselines are kept."""
+    if labels != "network":
+        return labels
+    from .segmentation.infer import SHIPPED
+
+    return f"network-{_file_digest(str(SHIPPED))}"
 
 
-def _run_job(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int, win: int, noise: str,
-             scale: float) -> Path:
-    """Score every window of one trajectory under one setting; writes OUT/runs/<job>.csv."""
-    from .config import load_config
-    from .metrics.rpe import rpe, rpe_parts
-    from .pipeline import baselines, score_window
+@lru_cache(maxsize=None)
+def _file_digest(path: str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:8]
 
-    _single_thread()
-    path = out / "runs" / f"{_job_name(labels, scene, traj, win, noise, scale)}.csv"
-    if path.exists():
-        return path
-    scans = pickle.loads(_scan_cache(out, scene, traj, labels, spec).read_bytes())
-    config = load_config(overrides={"metrics.radius": spec.radius})  # fast MME/MPV (exact_baselines off)
-    n_windows = len(scans) // win
+
+def _job_name(source: str, scene: str, traj: int, win: int, noise: str, scale: float) -> str:
+    """source: a label source (PNE/CPV job) or BASELINE_JOB (MME/MPV/MOM, which use every point, not labels)."""
+    return f"{_label_tag(source)}_{scene}_{traj}_w{win}_{noise}_{scale:g}"
+
+
+def _perturbed_windows(gt: np.ndarray, spec: ExperimentSpec, scene: str, traj: int, win: int, noise: str,
+                       scale: float) -> list[np.ndarray]:
+    """Estimated poses of every window of a trajectory (gt: (N, 4, 4)) under one setting. Seeded by the setting
+    only, so every label source and the baselines see the same perturbed windows."""
     job_seed = [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene))]
     rng = np.random.default_rng(job_seed)
-    with_baselines = set()
-    if labels == spec.labels[0]:  # baselines use every point, whatever the labels: compute them once
-        k = min(spec.baseline_windows, n_windows)
-        with_baselines = set(np.random.default_rng(job_seed + [1]).choice(n_windows, k, replace=False).tolist())
-    frames = _frames(scene, traj, spec) if with_baselines else None
-    rows = []
-    for w in range(n_windows):
-        window = scans[w * win:(w + 1) * win]
-        gt = np.stack([s.pose for s in window])
-        est = _perturb(gt, noise, scale, rng)
-        result = score_window([replace(s, pose=p) for s, p in zip(window, est)], config)
-        rot_deg, trans_m = rpe_parts(gt, est)
-        row = {"window": w, "rpe": rpe(gt, est), "rpe_rot_deg": rot_deg, "rpe_trans_m": trans_m,
-               "pne": result.pne, "cpv": result.cpv, "n_planes": result.n_planes, "n_groups": result.n_groups,
-               "t_pne_ms": result.timings["pne"], "t_cpv_ms": result.timings["cpv"]}
-        row.update({m: np.nan for m in BASELINES})
-        row.update({f"t_{m}_ms": np.nan for m in BASELINES})
-        if w in with_baselines:
-            values = baselines([f.points for f in frames[w * win:(w + 1) * win]], est, config.metrics)
-            row.update({k if k in BASELINES else f"{k}_ms": v for k, v in values.items()})
-        rows.append(row)
-    write_csv(path, rows)
+    return [_perturb(gt[w * win:(w + 1) * win], noise, scale, rng) for w in range(len(gt) // win)]
+
+
+def _baseline_windows(spec: ExperimentSpec, scene: str, traj: int, win: int, noise: str, scale: float,
+                      n_windows: int) -> list[int]:
+    """The seeded random subset of windows that get MME/MPV/MOM."""
+    seed = [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene)), 1]
+    k = min(spec.baseline_windows, n_windows)
+    return sorted(np.random.default_rng(seed).choice(n_windows, k, replace=False).tolist())
+
+
+def _run_job(out: Path, spec: ExperimentSpec, source: str, scene: str, traj: int, win: int, noise: str,
+             scale: float) -> Path:
+    """Score every window of one trajectory under one setting; writes OUT/runs/<job>.csv."""
+    _single_thread()
+    path = out / "runs" / f"{_job_name(source, scene, traj, win, noise, scale)}.csv"
+    if not path.exists():
+        rows = (_baseline_rows if source == BASELINE_JOB else _plane_rows)(out, spec, source, scene, traj, win, noise,
+                                                                          scale)
+        write_csv(path, rows)
     return path
+
+
+def _plane_rows(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int, win: int, noise: str,
+                scale: float) -> list[dict]:
+    """Per window: RPE (Eq. 4 and its parts), PNE, CPV, plane counts and times, from the cached scans."""
+    from .config import load_config
+    from .metrics.rpe import rpe, rpe_parts
+    from .pipeline import score_window
+
+    scans = pickle.loads(_scan_cache(out, scene, traj, labels, spec).read_bytes())
+    config = load_config()
+    gt = np.stack([s.pose for s in scans])
+    rows = []
+    for w, est in enumerate(_perturbed_windows(gt, spec, scene, traj, win, noise, scale)):
+        window = scans[w * win:(w + 1) * win]
+        result = score_window([replace(s, pose=p) for s, p in zip(window, est)], config)
+        gt_w = gt[w * win:(w + 1) * win]
+        rot_deg, trans_m = rpe_parts(gt_w, est)
+        rows.append({"window": w, "rpe": rpe(gt_w, est), "rpe_rot_deg": rot_deg, "rpe_trans_m": trans_m,
+                     "pne": result.pne, "cpv": result.cpv, "n_planes": result.n_planes, "n_groups": result.n_groups,
+                     "t_pne_ms": result.timings["pne"], "t_cpv_ms": result.timings["cpv"]})
+    return rows
+
+
+def _baseline_rows(out: Path, spec: ExperimentSpec, _source: str, scene: str, traj: int, win: int, noise: str,
+                   scale: float) -> list[dict]:
+    """MME, MPV, MOM and their times on the seeded subset of windows (every point of the scans, no labels)."""
+    from .config import load_config
+    from .pipeline import baselines
+
+    config = load_config(overrides={"metrics.radius": spec.radius})  # fast MME/MPV (exact_baselines off)
+    frames = _frames(scene, traj, spec)
+    gt = np.stack([f.pose for f in frames])
+    windows = _perturbed_windows(gt, spec, scene, traj, win, noise, scale)
+    rows = []
+    for w in _baseline_windows(spec, scene, traj, win, noise, scale, len(windows)):
+        values = baselines([f.points for f in frames[w * win:(w + 1) * win]], windows[w], config.metrics)
+        rows.append({"window": w, **{k if k in BASELINES else f"{k}_ms": v for k, v in values.items()}})
+    return rows
 
 
 def _single_thread() -> None:
@@ -159,16 +205,16 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------- the whole experiment
 
 def jobs(spec: ExperimentSpec) -> list[tuple]:
-    """(labels, scene, traj, win, noise, scale) of every job. Windows other than the correlation window are
-    run for timing (rt noise at the first scale)."""
+    """(source, scene, traj, win, noise, scale) of every job: one per label source (PNE, CPV) and one for the
+    baselines. Windows other than the correlation window are run for timing (rt noise at the first scale)."""
     out = []
-    for labels in spec.labels:
+    for source in (*spec.labels, BASELINE_JOB):
         for scene in spec.scenes:
             for traj in range(spec.trajectories):
                 for win in spec.windows:
                     settings = ([(n, s) for n in spec.noises for s in spec.scales] if win == spec.correlation_window
                                 else [("rt", spec.scales[0])])
-                    out += [(labels, scene, traj, win, n, s) for n, s in settings]
+                    out += [(source, scene, traj, win, n, s) for n, s in settings]
     return out
 
 
@@ -180,8 +226,9 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.json").write_text(json.dumps(asdict(spec), indent=2))
     started = time.perf_counter()
-    caches = sorted({(j[1], j[2], j[0]) for j in jobs(spec)})
     todo = [j for j in jobs(spec) if not (out / "runs" / f"{_job_name(*j)}.csv").exists()]
+    caches = sorted({(j[1], j[2], j[0]) for j in todo if j[0] != BASELINE_JOB})
+    todo.sort(key=lambda j: j[0] != BASELINE_JOB)  # the long baseline jobs first, so the pool ends evenly
     with ProcessPoolExecutor(max_workers=workers, initializer=_single_thread) as pool:
         pending = [pool.submit(_scan_cache, out, scene, traj, labels, spec) for scene, traj, labels in caches]
         for f in tqdm(as_completed(pending), total=len(pending), desc="scans (segment + planes)", disable=not progress):
@@ -195,7 +242,21 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
 
 
 def load_runs(spec: ExperimentSpec, out: Path) -> list[tuple[tuple, dict[str, np.ndarray]]]:
-    return [(j, _read_csv(out / "runs" / f"{_job_name(*j)}.csv")) for j in jobs(spec)]
+    """(job, per-window columns) of every label-source job, with the baselines of the same perturbed windows
+    joined in (NaN on windows without baselines)."""
+    runs = []
+    for job in jobs(spec):
+        if job[0] == BASELINE_JOB:
+            continue
+        data = _read_csv(out / "runs" / f"{_job_name(*job)}.csv")
+        base_path = out / "runs" / f"{_job_name(BASELINE_JOB, *job[1:])}.csv"
+        base = _read_csv(base_path) if base_path.read_text().count("\n") > 1 else None  # header only: no windows
+        for column in (*BASELINES, *(f"t_{m}_ms" for m in BASELINES)):
+            data[column] = np.full(len(data["window"]), np.nan)
+            if base is not None:
+                data[column][np.searchsorted(data["window"], base["window"])] = base[column]
+        runs.append((job, data))
+    return runs
 
 
 def _select(runs, labels: str, win: int, noise: str, scale: float) -> list[dict[str, np.ndarray]]:
@@ -203,42 +264,71 @@ def _select(runs, labels: str, win: int, noise: str, scale: float) -> list[dict[
     return [d for (lab, _, _, w, n, s), d in runs if lab == labels and w == win and n == noise and s == scale]
 
 
+POOLS = ("all", "common", "per-trajectory")  # how windows are pooled in the tables (see correlation_table)
+PLANE_METRICS = ("pne", "cpv")
+
+
+def _pools(sel: list[dict[str, np.ndarray]]) -> dict[str, list[dict[str, np.ndarray]]]:
+    """The windows of one setting three ways: 'all' (every trajectory's windows together), 'common' (only the
+    windows that have every metric, the fair comparison with the baselines) and 'per-trajectory' (one group
+    per trajectory: scene content sets each trajectory's metric level, which pooling mixes into the ranks)."""
+    cat = {k: np.concatenate([d[k] for d in sel]) for k in sel[0]}
+    common = np.all([np.isfinite(cat[m]) for m in METRICS], axis=0)
+    return {"all": [cat], "common": [{k: v[common] for k, v in cat.items()}], "per-trajectory": sel}
+
+
+def _median_of(groups: list[dict[str, np.ndarray]], fn, metrics: tuple) -> tuple[float, int]:
+    """Median over groups of fn(*columns) on each group's windows where all ``metrics`` are finite, and the
+    median number of windows used."""
+    values, sizes = [], []
+    for g in groups:
+        ok = np.all([np.isfinite(g[m]) for m in metrics], axis=0)
+        sizes.append(int(ok.sum()))
+        values.append(fn(*(g[m][ok] for m in metrics)) if ok.sum() >= 3 else np.nan)
+    return float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan"), int(np.median(sizes))
+
+
+def main_pool(spec: ExperimentSpec) -> str:
+    """The pooling the claims are checked on: 'common' (all five metrics on the same windows) when the
+    baselines cover at least 20 windows per setting, else 'all'."""
+    return "common" if spec.baseline_windows * spec.trajectories * len(spec.scenes) >= 20 else "all"
+
+
 def correlation_table(spec: ExperimentSpec, runs) -> list[dict]:
-    """Rows (labels, noise, scale, metric, n, pearson, spearman, kendall): windows pooled over scenes and
-    trajectories, at the correlation window size. Baseline rows use the windows that have baselines."""
+    """Rows (labels, noise, scale, windows, metric, n, pearson, spearman, kendall) at the correlation window size,
+    for each way of pooling windows (POOLS; per-trajectory rows are medians over trajectories and only for PNE
+    and CPV, the baselines having too few windows per trajectory). n: windows (per trajectory for medians)."""
     from .correlation import kendall, pearson, spearman
 
     rows = []
     for labels in spec.labels:
         for noise in spec.noises:
             for scale in spec.scales:
-                sel = _select(runs, labels, spec.correlation_window, noise, scale)
-                rpe = np.concatenate([d["rpe"] for d in sel])
-                for metric in METRICS:
-                    if metric in BASELINES and labels != spec.labels[0]:
-                        continue  # baselines use every point, not labels: computed with the first label source
-                    values = np.concatenate([d[metric] for d in sel])
-                    ok = np.isfinite(values)
-                    x, y = values[ok], rpe[ok]
-                    rows.append({"labels": labels, "noise": noise, "scale": scale, "metric": metric, "n": int(ok.sum()),
-                                 "pearson": pearson(x, y), "spearman": spearman(x, y), "kendall": kendall(x, y)})
+                for pool, groups in _pools(_select(runs, labels, spec.correlation_window, noise, scale)).items():
+                    for metric in PLANE_METRICS if pool == "per-trajectory" else METRICS:
+                        row = {"labels": labels, "noise": noise, "scale": scale, "windows": pool, "metric": metric}
+                        for name, fn in (("pearson", pearson), ("spearman", spearman), ("kendall", kendall)):
+                            row[name], row["n"] = _median_of(groups, fn, (metric, "rpe"))
+                        rows.append(row)
     return rows
 
 
 def multirelation_table(spec: ExperimentSpec, runs) -> list[dict]:
-    """Multi-relation(PNE, CPV, RPE) per label source, noise and scale (all windows of the correlation size)."""
+    """Multi-relation(PNE, CPV, RPE), (PNE, RPE), (CPV, RPE) per label source, noise, scale and window pooling
+    ('all' and 'per-trajectory' median; see _pools)."""
     from .correlation import multi_relation
 
     rows = []
     for labels in spec.labels:
         for noise in spec.noises:
             for scale in spec.scales:
-                sel = _select(runs, labels, spec.correlation_window, noise, scale)
-                cat = {k: np.concatenate([d[k] for d in sel]) for k in ("pne", "cpv", "rpe")}
-                rows.append({"labels": labels, "noise": noise, "scale": scale, "n": len(cat["rpe"]),
-                             "mr_pne_cpv_rpe": multi_relation(cat["pne"], cat["cpv"], cat["rpe"]),
-                             "mr_pne_rpe": multi_relation(cat["pne"], cat["rpe"]),
-                             "mr_cpv_rpe": multi_relation(cat["cpv"], cat["rpe"])})
+                pools = _pools(_select(runs, labels, spec.correlation_window, noise, scale))
+                for pool in ("all", "per-trajectory"):
+                    row = {"labels": labels, "noise": noise, "scale": scale, "windows": pool}
+                    for name, metrics in (("mr_pne_cpv_rpe", ("pne", "cpv", "rpe")), ("mr_pne_rpe", ("pne", "rpe")),
+                                          ("mr_cpv_rpe", ("cpv", "rpe"))):
+                        row[name], row["n"] = _median_of(pools[pool], multi_relation, metrics)
+                    rows.append(row)
     return rows
 
 
@@ -281,6 +371,7 @@ def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
     plt = pyplot()
     paths = {}
     corr = tables["correlations"]
+    pool = main_pool(spec)
     for labels in spec.labels:
         fig, axes = plt.subplots(len(spec.noises), 3, figsize=(12, 3 * len(spec.noises)), squeeze=False)
         for i, noise in enumerate(spec.noises):
@@ -289,7 +380,8 @@ def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
                 width = 0.8 / len(spec.scales)
                 for k, scale in enumerate(spec.scales):
                     vals = [next((r[kind] for r in corr if r["labels"] == labels and r["noise"] == noise
-                                  and r["scale"] == scale and r["metric"] == m), np.nan) for m in METRICS]
+                                  and r["scale"] == scale and r["metric"] == m and r["windows"] == pool), np.nan)
+                            for m in METRICS]
                     ax.bar(np.arange(len(METRICS)) + (k - (len(spec.scales) - 1) / 2) * width, vals, width,
                            label=f"scale {scale:g}")
                 ax.set_xticks(range(len(METRICS)), [m.upper() for m in METRICS])
@@ -297,18 +389,21 @@ def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
                 ax.set_ylim(-1, 1)
                 ax.set_title(f"{kind.capitalize()} with RPE, noise {noise}")
         axes[0, 0].legend(fontsize=8)
-        fig.suptitle(f"Correlation of each metric with RPE (window {spec.correlation_window}, labels: {labels})")
+        fig.suptitle(f"Correlation of each metric with RPE (window {spec.correlation_window}, labels: {labels}, "
+                     f"windows: {pool})")
         fig.tight_layout()
         paths[f"fig_correlations_{labels}"] = _save(fig, out / f"correlations_{labels}.png")
 
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = plt.subplots(figsize=(8, 3.8))
     mr = tables["multirelation"]
     groups = [(n, s) for n in spec.noises for s in spec.scales]
-    width = 0.8 / len(spec.labels)
-    for k, labels in enumerate(spec.labels):
-        vals = [next(r["mr_pne_cpv_rpe"] for r in mr if r["labels"] == labels and r["noise"] == n and r["scale"] == s)
-                for n, s in groups]
-        ax.bar(np.arange(len(groups)) + (k - (len(spec.labels) - 1) / 2) * width, vals, width, label=f"labels: {labels}")
+    bars = [(labels, pool) for labels in spec.labels for pool in ("all", "per-trajectory")]
+    width = 0.8 / len(bars)
+    for k, (labels, pool) in enumerate(bars):
+        vals = [next(r["mr_pne_cpv_rpe"] for r in mr if r["labels"] == labels and r["noise"] == n and r["scale"] == s
+                     and r["windows"] == pool) for n, s in groups]
+        ax.bar(np.arange(len(groups)) + (k - (len(bars) - 1) / 2) * width, vals, width,
+               label=f"labels: {labels}, windows: {pool}")
     ax.set_xticks(range(len(groups)), [f"{n} ×{s:g}" for n, s in groups])
     ax.axhline(0.9, color="gray", ls="--", lw=0.8)
     ax.set_ylim(0, 1)
@@ -357,23 +452,27 @@ def _fmt(x) -> str:
 
 
 def claims(spec: ExperimentSpec, tables: dict, labels: str) -> list[str]:
-    """The paper's claims checked on these tables, one line each (holds / does not hold, with the numbers)."""
+    """The paper's claims checked on these tables, one line each (holds / does not hold, with the numbers):
+    best metric among all five on the main pooling, PNE vs CPV per trajectory, Multi-relation both ways."""
     corr = [r for r in tables["correlations"] if r["labels"] == labels]
     lines = []
     for noise, best in (("r", "pne"), ("t", "cpv")):
         if noise not in spec.noises:
             continue
         for scale in spec.scales:
-            rows = {r["metric"]: r["spearman"] for r in corr if r["noise"] == noise and r["scale"] == scale}
-            top = max(rows, key=lambda m: -np.inf if not np.isfinite(rows[m]) else rows[m])
-            verdict = "holds" if top == best else "does NOT hold"
-            lines.append(f"- noise {noise} ×{scale:g}: {best.upper()} has the highest Spearman — {verdict} "
-                         f"({', '.join(f'{m.upper()} {_fmt(v)}' for m, v in rows.items())})")
+            for pool in (main_pool(spec), "per-trajectory"):
+                rows = {r["metric"]: r["spearman"] for r in corr
+                        if r["noise"] == noise and r["scale"] == scale and r["windows"] == pool}
+                top = max(rows, key=lambda m: -np.inf if not np.isfinite(rows[m]) else rows[m])
+                verdict = "holds" if top == best else "does NOT hold"
+                lines.append(f"- noise {noise} ×{scale:g}, windows {pool}: {best.upper()} has the highest Spearman of "
+                             f"{'/'.join(m.upper() for m in rows)} — {verdict} "
+                             f"({', '.join(f'{m.upper()} {_fmt(v)}' for m, v in rows.items())})")
     for r in tables["multirelation"]:
         if r["labels"] == labels and r["noise"] == "rt":
             verdict = "holds" if r["mr_pne_cpv_rpe"] >= 0.9 else "does NOT hold"
-            lines.append(f"- noise rt ×{r['scale']:g}: Multi-relation(PNE, CPV, RPE) = {_fmt(r['mr_pne_cpv_rpe'])} "
-                         f"≥ 0.9 — {verdict}")
+            lines.append(f"- noise rt ×{r['scale']:g}, windows {r['windows']}: Multi-relation(PNE, CPV, RPE) = "
+                         f"{_fmt(r['mr_pne_cpv_rpe'])} ≥ 0.9 — {verdict}")
     return lines
 
 
@@ -383,14 +482,14 @@ def _markdown(rows: list[dict], columns: list[str]) -> str:
                             + " |" for r in rows)
 
 
-def spearman_pivot(spec: ExperimentSpec, tables: dict, labels: str) -> str:
-    """Markdown: rows noise × scale, columns metrics, Spearman with RPE."""
+def spearman_pivot(spec: ExperimentSpec, tables: dict, labels: str, pool: str) -> str:
+    """Markdown: rows noise × scale, columns metrics, Spearman with RPE (windows pooled as ``pool``)."""
     rows = []
     for noise in spec.noises:
         for scale in spec.scales:
             row = {"noise": noise, "scale": f"{scale:g}"}
             for r in tables["correlations"]:
-                if r["labels"] == labels and r["noise"] == noise and r["scale"] == scale:
+                if r["labels"] == labels and r["noise"] == noise and r["scale"] == scale and r["windows"] == pool:
                     row[r["metric"].upper()] = r["spearman"]
             rows.append(row)
     cols = ["noise", "scale"] + [m.upper() for m in METRICS if any(m.upper() in r for r in rows)]
@@ -407,13 +506,20 @@ def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
             f"base {BASE_NOISE_ROT_DEG}° rotation (about a random axis) and {BASE_NOISE_TRANS_M} m translation per axis; "
             f"modes {', '.join(spec.noises)}, scales {', '.join(f'{s:g}' for s in spec.scales)}.",
             f"MME, MPV, MOM (radius {spec.radius} m, fast MME/MPV) on a seeded random subset of {spec.baseline_windows} "
-            f"windows per trajectory and setting; PNE and CPV on every window. RPE: Eq. 4.\n"]
+            f"windows per trajectory and setting (label independent: the same perturbed windows for every label "
+            f"source); PNE and CPV on every window. RPE: Eq. 4. Network labels: weights {_label_tag('network')}.",
+            "Windows are pooled three ways: 'all' (every window of every trajectory), 'common' (only the windows "
+            "that have all five metrics: the fair comparison with the baselines) and 'per-trajectory' (the median "
+            "over trajectories of each trajectory's correlation, PNE and CPV only).\n"]
     for labels in spec.labels:
-        text += [f"## Spearman correlation with RPE (labels: {labels})\n", spearman_pivot(spec, tables, labels), "",
+        text += [f"## Spearman correlation with RPE (labels: {labels})\n",
+                 f"Windows: {main_pool(spec)}\n", spearman_pivot(spec, tables, labels, main_pool(spec)), "",
+                 "Windows: per-trajectory (median over trajectories)\n",
+                 spearman_pivot(spec, tables, labels, "per-trajectory"), "",
                  "Claims of the paper on this data:\n", *claims(spec, tables, labels), "",
                  f"![correlations]({Path(paths[f'fig_correlations_{labels}']).name})\n"]
     text += ["## Multi-relation\n",
-             _markdown(tables["multirelation"], ["labels", "noise", "scale", "n", "mr_pne_cpv_rpe", "mr_pne_rpe",
+             _markdown(tables["multirelation"], ["labels", "noise", "scale", "windows", "n", "mr_pne_cpv_rpe", "mr_pne_rpe",
                                                   "mr_cpv_rpe"]), "", "![multirelation](multirelation.png)\n",
              "## Time per window (ms, one thread; PNE and CPV with planes cached)\n",
              _markdown(tables["timing"], ["window", "metric", "n", "median_ms", "p90_ms", "max_ms"]), "",
