@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import stats
 import pytest
 
 from topometric_ros.correlation import kendall, multi_relation, pearson, spearman
@@ -39,6 +40,14 @@ def test_rank_correlations_of_monotone_transform_are_one(rng):
     assert kendall(x, np.exp(x)) == pytest.approx(1.0)
     assert spearman(x, -x**3) == pytest.approx(-1.0)
     assert pearson(x, np.exp(x)) < 0.99  # not linear
+
+
+def test_rank_multi_relation_is_one_for_monotone_dependence(rng):
+    x = rng.normal(size=300)
+    assert multi_relation(x, np.exp(x)) < 0.99  # Eq. 9 is linear
+    assert multi_relation(x, np.exp(x), ranks=True) == pytest.approx(1.0, abs=1e-12)
+    assert multi_relation(A, A + B, C, ranks=True) == pytest.approx(
+        multi_relation(*(stats.rankdata(v) for v in (A, A + B, C))), rel=1e-12)
 
 
 def test_pearson_hand_value():

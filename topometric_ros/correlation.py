@@ -40,15 +40,18 @@ def kendall(x, y) -> float:
     return float(stats.kendalltau(m[:, 0], m[:, 1])[0]) if _defined(m) else float("nan")
 
 
-def multi_relation(*variables) -> float:
+def multi_relation(*variables, ranks: bool = False) -> float:
     """Multi-relation (paper Eq. 9) of two or more variables: standardise each, R = their correlation
     matrix, MR = 1 − λ_min(R) ∈ [0, 1]; 1 when one variable is an exact linear function of the others,
-    near 0 for independent variables."""
+    near 0 for independent variables. ranks=True: the same on each variable's ranks (Spearman-style, 1 for
+    exactly monotone relations of two variables; not the paper's definition)."""
     if len(variables) < 2:
         raise ValueError("multi_relation needs at least two variables")
     m = _finite_columns(*variables)
     if not _defined(m):
         return float("nan")
+    if ranks:
+        m = stats.rankdata(m, axis=0)
     z = (m - m.mean(axis=0)) / m.std(axis=0)
     r = (z.T @ z) / len(z)
     return float(np.clip(1.0 - np.linalg.eigvalsh(r)[0], 0.0, 1.0))

@@ -288,6 +288,12 @@ def _median_of(groups: list[dict[str, np.ndarray]], fn, metrics: tuple) -> tuple
     return float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan"), int(np.median(sizes))
 
 
+def _rank_multi_relation(*variables) -> float:
+    from .correlation import multi_relation
+
+    return multi_relation(*variables, ranks=True)
+
+
 def main_pool(spec: ExperimentSpec) -> str:
     """The pooling the claims are checked on: 'common' (all five metrics on the same windows) when the
     baselines cover at least 20 windows per setting, else 'all'."""
@@ -315,7 +321,8 @@ def correlation_table(spec: ExperimentSpec, runs) -> list[dict]:
 
 def multirelation_table(spec: ExperimentSpec, runs) -> list[dict]:
     """Multi-relation(PNE, CPV, RPE), (PNE, RPE), (CPV, RPE) per label source, noise, scale and window pooling
-    ('all' and 'per-trajectory' median; see _pools)."""
+    ('all' and 'per-trajectory' median; see _pools); also MR(PNE, CPV, RPE) of ranks, which separates monotone
+    but non-linear dependence (PNE is logarithmic in the normal spread, CPV quadratic in offsets) from none."""
     from .correlation import multi_relation
 
     rows = []
@@ -328,6 +335,8 @@ def multirelation_table(spec: ExperimentSpec, runs) -> list[dict]:
                     for name, metrics in (("mr_pne_cpv_rpe", ("pne", "cpv", "rpe")), ("mr_pne_rpe", ("pne", "rpe")),
                                           ("mr_cpv_rpe", ("cpv", "rpe"))):
                         row[name], row["n"] = _median_of(pools[pool], multi_relation, metrics)
+                    row["mr_pne_cpv_rpe_ranks"], _ = _median_of(pools[pool], _rank_multi_relation,
+                                                                ("pne", "cpv", "rpe"))
                     rows.append(row)
     return rows
 
@@ -496,21 +505,31 @@ def spearman_pivot(spec: ExperimentSpec, tables: dict, labels: str, pool: str) -
     return _markdown([{c: r.get(c, np.nan) for c in cols} for r in rows], cols)
 
 
-def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
-    """OUT/REPORT.md: data, noise levels, tables, the paper's claims checked, figures."""
-    text = ["# Noise experiment: map-consistency metrics against RPE\n",
-            f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} trajectories each "
-            f"(seeds {TRAJECTORY_SEED0}..), {spec.frames} scans per trajectory. Windows of {', '.join(map(str, spec.windows))} "
-            f"scans, step = size; correlations at window {spec.correlation_window}.",
-            f"Noise: every pose of a window is perturbed independently; per window σ = u · scale · base, u ~ U(0, 1), "
-            f"base {BASE_NOISE_ROT_DEG}° rotation (about a random axis) and {BASE_NOISE_TRANS_M} m translation per axis; "
-            f"modes {', '.join(spec.noises)}, scales {', '.join(f'{s:g}' for s in spec.scales)}.",
-            f"MME, MPV, MOM (radius {spec.radius} m, fast MME/MPV) on a seeded random subset of {spec.baseline_windows} "
-            f"windows per trajectory and setting (label independent: the same perturbed windows for every label "
-            f"source); PNE and CPV on every window. RPE: Eq. 4. Network labels: weights {_label_tag('network')}.",
+MR_COLUMNS = ["labels", "noise", "scale", "windows", "n", "mr_pne_cpv_rpe", "mr_pne_rpe", "mr_cpv_rpe",
+              "mr_pne_cpv_rpe_ranks"]
+
+
+def _data_section(spec: ExperimentSpec) -> list[str]:
+    """What was run: scenes, trajectories, noise model, baselines subset, pooling of windows."""
+    scales = ", ".join(f"{s:g}" for s in spec.scales)
+    return [f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} trajectories "
+            f"each (seeds {TRAJECTORY_SEED0}..), {spec.frames} scans per trajectory. Windows of "
+            f"{', '.join(map(str, spec.windows))} scans, step = size; correlations at window {spec.correlation_window}.",
+            f"Noise: every pose of a window is perturbed independently; per window σ = u · scale · base, "
+            f"u ~ U(0, 1), base {BASE_NOISE_ROT_DEG}° rotation (about a random axis) and {BASE_NOISE_TRANS_M} m "
+            f"translation per axis; modes {', '.join(spec.noises)}, scales {scales}.",
+            f"MME, MPV, MOM (radius {spec.radius} m, fast MME/MPV) on a seeded random subset of "
+            f"{spec.baseline_windows} windows per trajectory and setting (label independent: the same perturbed "
+            f"windows for every label source); PNE and CPV on every window. RPE: Eq. 4. "
+            f"Network labels: weights {_label_tag('network')}.",
             "Windows are pooled three ways: 'all' (every window of every trajectory), 'common' (only the windows "
             "that have all five metrics: the fair comparison with the baselines) and 'per-trajectory' (the median "
             "over trajectories of each trajectory's correlation, PNE and CPV only).\n"]
+
+
+def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
+    """OUT/REPORT.md: data, noise levels, tables, the paper's claims checked, figures."""
+    text = ["# Noise experiment: map-consistency metrics against RPE\n", *_data_section(spec)]
     for labels in spec.labels:
         text += [f"## Spearman correlation with RPE (labels: {labels})\n",
                  f"Windows: {main_pool(spec)}\n", spearman_pivot(spec, tables, labels, main_pool(spec)), "",
@@ -518,9 +537,8 @@ def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
                  spearman_pivot(spec, tables, labels, "per-trajectory"), "",
                  "Claims of the paper on this data:\n", *claims(spec, tables, labels), "",
                  f"![correlations]({Path(paths[f'fig_correlations_{labels}']).name})\n"]
-    text += ["## Multi-relation\n",
-             _markdown(tables["multirelation"], ["labels", "noise", "scale", "windows", "n", "mr_pne_cpv_rpe", "mr_pne_rpe",
-                                                  "mr_cpv_rpe"]), "", "![multirelation](multirelation.png)\n",
+    text += ["## Multi-relation\n", _markdown(tables["multirelation"], MR_COLUMNS), "",
+             "![multirelation](multirelation.png)\n",
              "## Time per window (ms, one thread; PNE and CPV with planes cached)\n",
              _markdown(tables["timing"], ["window", "metric", "n", "median_ms", "p90_ms", "max_ms"]), "",
              "![timing](timing.png)\n", "![scatter](scatter.png)\n",
