@@ -514,7 +514,8 @@ def _data_section(spec: ExperimentSpec) -> list[str]:
     scales = ", ".join(f"{s:g}" for s in spec.scales)
     return [f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} trajectories "
             f"each (seeds {TRAJECTORY_SEED0}..), {spec.frames} scans per trajectory. Windows of "
-            f"{', '.join(map(str, spec.windows))} scans, step = size; correlations at window {spec.correlation_window}.",
+            f"{', '.join(map(str, spec.windows))} scans, step = size; correlations at window "
+            f"{spec.correlation_window}.",
             f"Noise: every pose of a window is perturbed independently; per window σ = u · scale · base, "
             f"u ~ U(0, 1), base {BASE_NOISE_ROT_DEG}° rotation (about a random axis) and {BASE_NOISE_TRANS_M} m "
             f"translation per axis; modes {', '.join(spec.noises)}, scales {scales}.",
