@@ -26,11 +26,15 @@ _BATCH = 1024
 _MAX_INDEX = 1 << 23
 _MAX_ELEMENTS = 1 << 21
 
+#: widest query box (in radii) summed about one origin (see _tile_sums)
+_TILE = 64
+
 #: voxel grid offset in voxel units (see voxel_moments)
 _GRID_PHASE = 0.3819660112501051
 
 #: index pairs of the 6 unique entries of a symmetric 3×3 matrix, in the order xx, xy, xz, yy, yz, zz
 SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYM_A, _SYM_B = np.array(SYM6).T
 
 
 def aggregate_map(clouds, poses) -> np.ndarray:
@@ -127,13 +131,15 @@ def _ranges_index(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
 
 
 def _moment_features(local: np.ndarray, weight: np.ndarray | None, scatter: np.ndarray | None) -> np.ndarray:
-    """(M, 10) columns [w, w·y, Σ(yyᵀ) unique entries] of sources at chunk-local positions y."""
+    """(M, 10) columns [w, w·y, Σ(yyᵀ) unique entries] of sources at positions y (frame of the tile)."""
     f = np.empty((len(local), 10))
-    w = 1.0 if weight is None else weight
-    f[:, 0] = w
-    f[:, 1:4] = local * (w if weight is None else weight[:, None])
-    for j, (a, b) in enumerate(SYM6):
-        f[:, 4 + j] = local[:, a] * local[:, b] * w
+    f[:, 1:4] = local
+    np.multiply(local[:, _SYM_A], local[:, _SYM_B], out=f[:, 4:])
+    if weight is None:
+        f[:, 0] = 1.0
+    else:
+        f[:, 0] = weight
+        f[:, 1:] *= weight[:, None]
     if scatter is not None:
         f[:, 4:] += scatter
     return f
@@ -160,15 +166,50 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
     (M, 6) internal scatter make each source a summary of several points (a voxel around its centroid).
     Returns (counts (K,) float, covariances (K, 6) in SYM6 order, m²; zero where the count is below 2).
     """
+    same = queries is sources  # every pair is then found once and counted at both ends
     q = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
-    src = np.asarray(sources, dtype=np.float64).reshape(-1, 3)
+    src = q if same else np.asarray(sources, dtype=np.float64).reshape(-1, 3)
     if radius <= 0:
         raise ValueError(f"radius must be positive, got {radius}")
-    counts = np.zeros(len(q))
-    covs = np.zeros((len(q), 6))
-    if len(q) == 0 or len(src) == 0:
-        return counts, covs
-    r = float(radius)
+    w = None if weights is None else np.asarray(weights, np.float64)
+    sc = None if scatter is None else np.asarray(scatter, np.float64)
+    sums = np.zeros((len(q), 10))
+    if len(q) and len(src):
+        _tile_sums(q, src, w, sc, float(radius), sums, same)
+    n, cov = _covariances(sums)
+    return n, cov
+
+
+def _tile_sums(q, src, w, sc, r, out, same=False) -> None:
+    """Moment sums of the sources within r of each query, into out (K, 10). Sums are taken about the centre
+    of the queries' box; boxes wider than _TILE radii are halved first, which bounds the cancellation in
+    Σyyᵀ − ΣyΣyᵀ/n (a relative error of about eps · (_TILE / 2)²)."""
+    qlo, qhi = q.min(axis=0), q.max(axis=0)
+    axis = int(np.argmax(qhi - qlo))
+    if same and qhi[axis] - qlo[axis] <= _TILE * r:
+        origin = 0.5 * (qlo + qhi)
+        out[:] = _self_sums(q - origin, w, sc, r)
+        return
+    near = np.all((src > qlo - r) & (src < qhi + r), axis=1)
+    if not near.any():
+        return
+    if not near.all():
+        src = src[near]
+        w = None if w is None else w[near]
+        sc = None if sc is None else sc[near]
+    if qhi[axis] - qlo[axis] > _TILE * r:
+        left = q[:, axis] < 0.5 * (qlo[axis] + qhi[axis])
+        for part in (left, ~left):
+            sub = np.empty((int(part.sum()), 10))
+            _tile_sums(q[part], src, w, sc, r, sub)
+            out[part] = sub
+        return
+    origin = 0.5 * (qlo + qhi)
+    out[:] = _centred_sums(q - origin, src - origin, w, sc, r)
+
+
+def _centred_sums(q, src, w, sc, r) -> np.ndarray:
+    """(K, 10) moment sums of the sources within r of each query; coordinates near the origin."""
     h = r / _FINE
     lo = np.minimum(q.min(axis=0), src.min(axis=0))
     # sources sorted by grid cell; a column (x, y) of cells is one run of keys
@@ -178,14 +219,22 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
     order = np.argsort(key, kind="stable")
     key = key[order]
     src_s = src[order]
-    w_s = None if weights is None else np.asarray(weights, np.float64)[order]
-    sc_s = None if scatter is None else np.asarray(scatter, np.float64)[order]
+    feats = _moment_features(src_s, None if w is None else w[order], None if sc is None else sc[order])
+    # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 − ‖a‖²/2 + r²/2 > 0: rows [a, 1, r²/2 − ‖a‖²/2], columns [b, −‖b‖²/2, 1]
+    bh = np.empty((len(src_s), 5))
+    bh[:, :3] = src_s
+    bh[:, 3] = -0.5 * np.einsum("ij,ij->i", src_s, src_s)
+    bh[:, 4] = 1.0
     # queries sorted by chunk
     qcell = np.floor((q - lo) / (h * _CHUNK)).astype(np.int64)
     cdims = qcell.max(axis=0) + 1
     qkey = (qcell[:, 0] * cdims[1] + qcell[:, 1]) * cdims[2] + qcell[:, 2]
     qorder = np.argsort(qkey, kind="stable")
     q_s = q[qorder]
+    ah = np.empty((len(q_s), 5))
+    ah[:, :3] = q_s
+    ah[:, 3] = 1.0
+    ah[:, 4] = 0.5 * r * r - 0.5 * np.einsum("ij,ij->i", q_s, q_s)
     bounds = np.flatnonzero(np.diff(qkey[qorder])) + 1
     first = np.concatenate(([0], bounds))
     last = np.concatenate((bounds, [len(q)]))
@@ -208,38 +257,113 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
             offs = np.concatenate(([0], total[:c1 - c0]))
             for j in range(c1 - c0):
                 c = b0 + c0 + j
-                _chunk_moments(q_s, first[c], last[c], 0.5 * (bmin[c] + bmax[c]), src_s, w_s, sc_s,
-                               idx[offs[j]:offs[j + 1]], r, out)
+                _chunk_moments(ah, first[c], last[c], bh, feats, idx[offs[j]:offs[j + 1]], out)
             c0 = c1
-    n, cov = _covariances(out)
-    counts[qorder] = n
-    covs[qorder] = cov
-    return counts, covs
+    sums = np.empty_like(out)
+    sums[qorder] = out
+    return sums
 
 
-def _chunk_moments(q_s, row0, row1, centre, src_s, w_s, sc_s, cand, r, out) -> None:
+def _grid(points, r):
+    """Fine grid of the points (origin, cell indices (N, 3), dims) and the column-major cell keys."""
+    h = r / _FINE
+    lo = points.min(axis=0)
+    cell = np.floor((points - lo) / h).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    return lo, cell, dims, (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+
+
+def _row_and_column_features(pts, w, sc, r):
+    """(N, 5) mask rows [a, 1, r²/2 − ‖a‖²/2] and (N, 15) columns: mask columns [b, −‖b‖²/2, 1] (the
+    product of a row and a mask column is > 0 exactly when ‖a − b‖ < r) then the 10 moment features."""
+    sq = 0.5 * np.einsum("ij,ij->i", pts, pts)
+    ah = np.empty((len(pts), 5))
+    ah[:, :3] = pts
+    ah[:, 3] = 1.0
+    ah[:, 4] = 0.5 * r * r - sq
+    cols = np.empty((len(pts), 15))
+    cols[:, :3] = pts
+    cols[:, 3] = -sq
+    cols[:, 4] = 1.0
+    cols[:, 5:] = _moment_features(pts, w, sc)
+    return ah, cols
+
+
+def _self_sums(pts, w, sc, r) -> np.ndarray:
+    """(N, 10) moment sums of the points within r of each point (the sources are the queries): each chunk
+    meets its own points and the later chunks' points once, and a pair is added to both of its ends."""
+    lo, cell, dims, key = _grid(pts, r)
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    pts_s = pts[order]
+    ah, cols = _row_and_column_features(pts_s, None if w is None else w[order], None if sc is None else sc[order], r)
+    ccell = cell[order] // _CHUNK
+    cdims = ccell.max(axis=0) + 1
+    ckey = (ccell[:, 0] * cdims[1] + ccell[:, 1]) * cdims[2] + ccell[:, 2]
+    members = np.argsort(ckey, kind="stable")  # positions (in key order) of each chunk's points
+    bounds = np.flatnonzero(np.diff(ckey[members])) + 1
+    first = np.concatenate(([0], bounds))
+    last = np.concatenate((bounds, [len(pts)]))
+    bmin = np.minimum.reduceat(pts_s[members], first, axis=0)
+    bmax = np.maximum.reduceat(pts_s[members], first, axis=0)
+    chunk_cell = ccell[members[first]] * _CHUNK
+    stencil = np.arange(-_FINE, _CHUNK + _FINE)
+    h = r / _FINE
+    sums = np.zeros((len(pts), 10))  # in members order
+    position = np.empty_like(members)
+    position[members] = np.arange(len(members))
+    for b0 in range(0, len(first), _BATCH):
+        b1 = min(b0 + _BATCH, len(first))
+        starts, ends, (per_chunk, _) = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo,
+                                                         h, r, dims, key, later_only=True)
+        later = _ranges_index(starts, ends)
+        back = np.empty((len(later), 10))
+        offs = np.concatenate(([0], np.cumsum(per_chunk)))
+        for j in range(b1 - b0):
+            c = b0 + j
+            _pair_moments(ah, cols, members[first[c]:last[c]], later[offs[j]:offs[j + 1]],
+                          sums[first[c]:last[c]], back[offs[j]:offs[j + 1]])
+        later = position[later]
+        for k in range(10):
+            sums[:, k] += np.bincount(later, back[:, k], minlength=len(pts))
+    out = np.empty_like(sums)
+    out[order[members]] = sums
+    return out
+
+
+def _pair_moments(ah, cols, own, later, own_out, later_out) -> None:
+    """Moments of the pairs (own point, own or later point) within r: own_out is added each own point's
+    sums (own and later partners), later_out is set to each later point's sums over the own partners."""
+    n0 = len(own)
+    c = np.take(cols, np.concatenate((own, later)), axis=0)
+    b, f = c[:, :5], c[:, 5:]
+    step = max(8, min(_ROWS, _MAX_ELEMENTS // len(c)))
+    later_out[:] = 0.0
+    for r0 in range(0, n0, step):
+        r1 = min(r0 + step, n0)
+        g = np.take(ah, own[r0:r1], axis=0) @ b.T
+        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
+        own_out[r0:r1] += g @ f
+        if len(later):
+            later_out += g[:, n0:].T @ f[r0:r1]
+
+
+def _chunk_moments(ah, row0, row1, bh, feats, cand, out) -> None:
     """Moment sums (rows row0:row1 of out) of the candidates within r of each query of one chunk."""
     if len(cand) == 0:
         out[row0:row1] = 0.0
         return
-    local = src_s[cand] - centre
-    feats = _moment_features(local, None if w_s is None else w_s[cand], None if sc_s is None else sc_s[cand])
-    bh = np.empty((len(local), 4))
-    bh[:, :3] = local
-    bh[:, 3] = -0.5 * np.einsum("ij,ij->i", local, local)
+    b = bh[cand]
+    f = feats[cand]
     step = max(8, min(_ROWS, _MAX_ELEMENTS // len(cand)))
     for r0 in range(row0, row1, step):
         r1 = min(r0 + step, row1)
-        a = q_s[r0:r1] - centre
-        ah = np.ones((len(a), 4))
-        ah[:, :3] = a
-        # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2; the mask is written as 0.0 / 1.0 in place
-        g = ah @ bh.T
-        np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None], out=g)
-        out[r0:r1] = g @ feats
+        g = ah[r0:r1] @ b.T
+        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
+        out[r0:r1] = g @ f
 
 
-def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
+def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, later_only=False):
     """Runs [start, end) of sorted sources that may lie within r of each chunk's box: one run per (x, y)
     column of cells, pruned by the exact box distance. Returns (starts, ends, (candidates per chunk,
     runs per chunk)), runs in chunk order."""
@@ -252,6 +376,13 @@ def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
     dz = np.sqrt(np.maximum(r * r - d2, 0.0))
     z0 = np.clip(np.floor((bmin[:, 2, None, None] - dz - lo[2]) / h).astype(np.int64), 0, dims[2])
     z1 = np.clip(np.floor((bmax[:, 2, None, None] + dz - lo[2]) / h).astype(np.int64) + 1, 0, dims[2])
+    if later_only:  # only the points of later chunks (chunk keys are column-major too)
+        cx, cy = (gx // _CHUNK)[:, :, None], (gy // _CHUNK)[:, None, :]
+        ox, oy = (chunk_cell[:, 0] // _CHUNK)[:, None, None], (chunk_cell[:, 1] // _CHUNK)[:, None, None]
+        same = (cx == ox) & (cy == oy)
+        inside &= (cx > ox) | ((cx == ox) & (cy > oy)) | same
+        z0 = np.where(same, np.maximum(z0, chunk_cell[:, 2, None, None] + _CHUNK), z0)
+        z1 = np.maximum(z0, z1)
     base = (gx[:, :, None] * dims[1] + gy[:, None, :]) * dims[2]
     starts = np.searchsorted(key, (base + z0)[inside])
     ends = np.searchsorted(key, (base + z1)[inside])
