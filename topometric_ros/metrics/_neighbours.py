@@ -2,11 +2,14 @@
 
 For every query point q the sources x with ‖x − q‖ < r (strict, as Open3D's radius search) are found and
 their count and unbiased covariance are returned. Instead of one radius search per point, the queries are
-grouped in small cubes ("chunks"); each chunk gets the sources that can lie within r of its bounding box
-(a grid of cells of size r/4, pruned column by column), and the exact neighbour masks and moment sums of the
-whole chunk come from two dense matrix products (BLAS). Coordinates are taken relative to the chunk centre
-so that E[xxᵀ] − μμᵀ loses no precision. Sources may be weighted points carrying their own scatter (voxel
-summaries): the sums then use the parallel-axis rule, which is how the fast approximation reuses this code.
+grouped in small cubes ("chunks", side r); each chunk gets the sources that can lie within r of its bounding
+box (a grid of columns of side r/4, pruned column by column), and the exact neighbour masks and moment sums
+of the whole chunk come from dense matrix products (BLAS). When the queries are the sources (MME, MPV),
+a chunk meets only its own and the later chunks' points and every pair is added to both of its ends, so
+each unordered pair is tested once. Mask columns and moment features are computed once per point, about
+the centre of the queries' box; boxes wider than _TILE radii are halved first, which bounds the
+cancellation in E[xxᵀ] − μμᵀ. Sources may be weighted points carrying their own scatter (voxel summaries):
+the sums then use the parallel-axis rule, which is how the fast approximation reuses this code.
 """
 from __future__ import annotations
 
@@ -273,6 +276,14 @@ def _grid(points, r):
     return lo, cell, dims, (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
 
 
+def _column_z_keys(points, lo, cell, dims, r):
+    """Float keys column · span + (z − lo_z + 2r) that sort the points by grid column, then by z (so also by
+    cell key), with span > every z range a query asks for; and the margin that covers their rounding."""
+    span = float(points[:, 2].max() - lo[2]) + 4 * r
+    keys = (cell[:, 0] * dims[1] + cell[:, 1]) * span + (points[:, 2] - lo[2] + 2 * r)
+    return keys, span, 8 * float(np.spacing(np.abs(keys).max())) + 1e-9 * r
+
+
 def _row_and_column_features(pts, w, sc, r):
     """(N, 5) mask rows [a, 1, r²/2 − ‖a‖²/2] and (N, 15) columns: mask columns [b, −‖b‖²/2, 1] (the
     product of a row and a mask column is > 0 exactly when ‖a − b‖ < r) then the 10 moment features."""
@@ -293,8 +304,10 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
     """(N, 10) moment sums of the points within r of each point (the sources are the queries): each chunk
     meets its own points and the later chunks' points once, and a pair is added to both of its ends."""
     lo, cell, dims, key = _grid(pts, r)
-    order = np.argsort(key, kind="stable")
+    zkey = _column_z_keys(pts, lo, cell, dims, r)
+    order = np.argsort(zkey[0], kind="stable")
     key = key[order]
+    zkey = (zkey[0][order],) + zkey[1:]
     pts_s = pts[order]
     ah, cols = _row_and_column_features(pts_s, None if w is None else w[order], None if sc is None else sc[order], r)
     ccell = cell[order] // _CHUNK
@@ -315,9 +328,9 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
     for b0 in range(0, len(first), _BATCH):
         b1 = min(b0 + _BATCH, len(first))
         starts, ends, (per_chunk, _) = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo,
-                                                         h, r, dims, key, later_only=True)
+                                                         h, r, dims, key, later_only=True, zkey=zkey)
         later = _ranges_index(starts, ends)
-        back = np.empty((len(later), 10))
+        back = np.empty((len(later), 10), order="F")  # columns contiguous for bincount
         offs = np.concatenate(([0], np.cumsum(per_chunk)))
         for j in range(b1 - b0):
             c = b0 + j
@@ -338,6 +351,12 @@ def _pair_moments(ah, cols, own, later, own_out, later_out) -> None:
     c = np.take(cols, np.concatenate((own, later)), axis=0)
     b, f = c[:, :5], c[:, 5:]
     step = max(8, min(_ROWS, _MAX_ELEMENTS // len(c)))
+    if n0 <= step:  # one block (the common case)
+        g = np.take(ah, own, axis=0) @ b.T
+        np.greater(g, 0.0, out=g)
+        own_out += g @ f
+        later_out[:] = g[:, n0:].T @ f[:n0]
+        return
     later_out[:] = 0.0
     for r0 in range(0, n0, step):
         r1 = min(r0 + step, n0)
@@ -363,10 +382,12 @@ def _chunk_moments(ah, row0, row1, bh, feats, cand, out) -> None:
         out[r0:r1] = g @ f
 
 
-def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, later_only=False):
+def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, later_only=False, zkey=None):
     """Runs [start, end) of sorted sources that may lie within r of each chunk's box: one run per (x, y)
-    column of cells, pruned by the exact box distance. Returns (starts, ends, (candidates per chunk,
-    runs per chunk)), runs in chunk order."""
+    column of cells, pruned by the exact box distance (to whole cells in z, or to the points' z when the
+    sources are sorted by z in each column and zkey = (column, z) keys, see _column_z_keys). later_only
+    keeps the sources of later chunks only. Returns (starts, ends, (candidates per chunk, runs per chunk)),
+    runs in chunk order."""
     gx = chunk_cell[:, 0, None] + stencil[None, :]  # (C, S)
     gy = chunk_cell[:, 1, None] + stencil[None, :]
     dx = np.maximum(np.maximum(lo[0] + gx * h - bmax[:, 0, None], bmin[:, 0, None] - (lo[0] + (gx + 1) * h)), 0)
@@ -386,6 +407,13 @@ def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, late
     base = (gx[:, :, None] * dims[1] + gy[:, None, :]) * dims[2]
     starts = np.searchsorted(key, (base + z0)[inside])
     ends = np.searchsorted(key, (base + z1)[inside])
+    if zkey is not None:
+        keys, span, margin = zkey
+        column = (base // dims[2] * span)[inside]
+        z_lo = (bmin[:, 2, None, None] - dz - lo[2] + 2 * r)[inside]  # as in _column_z_keys
+        z_hi = (bmax[:, 2, None, None] + dz - lo[2] + 2 * r)[inside]
+        starts = np.maximum(starts, np.searchsorted(keys, column + z_lo - margin))
+        ends = np.maximum(starts, np.minimum(ends, np.searchsorted(keys, column + z_hi + margin, side="right")))
     chunk_of_run = np.nonzero(inside)[0]
     per_chunk = np.bincount(chunk_of_run, ends - starts, minlength=len(bmin)).astype(np.int64)
     runs = np.bincount(chunk_of_run, minlength=len(bmin))
@@ -416,5 +444,6 @@ def map_covariances(points: np.ndarray, radius: float, exact: bool = True, max_q
     centres, weights, scatter, voxel_of = voxel_moments(pts, voxel_ratio * radius)
     query_weight = weights if chosen is None else np.bincount(voxel_of[chosen], minlength=len(weights)).astype(float)
     used = query_weight > 0
-    counts, covs = ball_covariances(centres[used], centres, radius, weights, scatter)
+    queries = centres if used.all() else centres[used]  # the same array: each pair is found once
+    counts, covs = ball_covariances(queries, centres, radius, weights, scatter)
     return counts, covs, query_weight[used]
