@@ -30,7 +30,7 @@ _MAX_INDEX = 1 << 23
 _MAX_ELEMENTS = 1 << 21
 
 #: widest query box (in radii) summed about one origin (see _tile_sums)
-_TILE = 64
+_TILE = 256
 
 #: voxel grid offset in voxel units (see voxel_moments)
 _GRID_PHASE = 0.3819660112501051
@@ -133,21 +133,6 @@ def _ranges_index(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return np.repeat(starts - first, lens) + np.arange(total)
 
 
-def _moment_features(local: np.ndarray, weight: np.ndarray | None, scatter: np.ndarray | None) -> np.ndarray:
-    """(M, 10) columns [w, w·y, Σ(yyᵀ) unique entries] of sources at positions y (frame of the tile)."""
-    f = np.empty((len(local), 10))
-    f[:, 1:4] = local
-    np.multiply(local[:, _SYM_A], local[:, _SYM_B], out=f[:, 4:])
-    if weight is None:
-        f[:, 0] = 1.0
-    else:
-        f[:, 0] = weight
-        f[:, 1:] *= weight[:, None]
-    if scatter is not None:
-        f[:, 4:] += scatter
-    return f
-
-
 def _covariances(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, 10) moment sums -> (counts (K,), unbiased covariances (K, 6)); zero where count < 2."""
     n = sums[:, 0]
@@ -184,9 +169,9 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
 
 
 def _tile_sums(q, src, w, sc, r, out, same=False) -> None:
-    """Moment sums of the sources within r of each query, into out (K, 10). Sums are taken about the centre
-    of the queries' box; boxes wider than _TILE radii are halved first, which bounds the cancellation in
-    Σyyᵀ − ΣyΣyᵀ/n (a relative error of about eps · (_TILE / 2)²)."""
+    """Moment sums of the sources within r of each query, into out (K, 10), each about the centre of its
+    query's chunk. The masks are computed about the centre of the queries' box; boxes wider than _TILE radii
+    are halved first, which bounds their rounding (about eps · (_TILE / 2)² of r²)."""
     qlo, qhi = q.min(axis=0), q.max(axis=0)
     axis = int(np.argmax(qhi - qlo))
     if same and qhi[axis] - qlo[axis] <= _TILE * r:
@@ -203,68 +188,12 @@ def _tile_sums(q, src, w, sc, r, out, same=False) -> None:
     if qhi[axis] - qlo[axis] > _TILE * r:
         left = q[:, axis] < 0.5 * (qlo[axis] + qhi[axis])
         for part in (left, ~left):
-            sub = np.empty((int(part.sum()), 10))
+            sub = np.zeros((int(part.sum()), 10))
             _tile_sums(q[part], src, w, sc, r, sub)
             out[part] = sub
         return
     origin = 0.5 * (qlo + qhi)
     out[:] = _centred_sums(q - origin, src - origin, w, sc, r)
-
-
-def _centred_sums(q, src, w, sc, r) -> np.ndarray:
-    """(K, 10) moment sums of the sources within r of each query; coordinates near the origin."""
-    h = r / _FINE
-    lo = np.minimum(q.min(axis=0), src.min(axis=0))
-    # sources sorted by grid cell; a column (x, y) of cells is one run of keys
-    cell = np.floor((src - lo) / h).astype(np.int64)
-    dims = np.maximum(cell.max(axis=0), np.floor((q.max(axis=0) - lo) / h).astype(np.int64)) + 1
-    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    order = np.argsort(key, kind="stable")
-    key = key[order]
-    src_s = src[order]
-    feats = _moment_features(src_s, None if w is None else w[order], None if sc is None else sc[order])
-    # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 − ‖a‖²/2 + r²/2 > 0: rows [a, 1, r²/2 − ‖a‖²/2], columns [b, −‖b‖²/2, 1]
-    bh = np.empty((len(src_s), 5))
-    bh[:, :3] = src_s
-    bh[:, 3] = -0.5 * np.einsum("ij,ij->i", src_s, src_s)
-    bh[:, 4] = 1.0
-    # queries sorted by chunk
-    qcell = np.floor((q - lo) / (h * _CHUNK)).astype(np.int64)
-    cdims = qcell.max(axis=0) + 1
-    qkey = (qcell[:, 0] * cdims[1] + qcell[:, 1]) * cdims[2] + qcell[:, 2]
-    qorder = np.argsort(qkey, kind="stable")
-    q_s = q[qorder]
-    ah = np.empty((len(q_s), 5))
-    ah[:, :3] = q_s
-    ah[:, 3] = 1.0
-    ah[:, 4] = 0.5 * r * r - 0.5 * np.einsum("ij,ij->i", q_s, q_s)
-    bounds = np.flatnonzero(np.diff(qkey[qorder])) + 1
-    first = np.concatenate(([0], bounds))
-    last = np.concatenate((bounds, [len(q)]))
-    bmin = np.minimum.reduceat(q_s, first, axis=0)
-    bmax = np.maximum.reduceat(q_s, first, axis=0)
-    chunk_cell = qcell[qorder][first] * _CHUNK
-    stencil = np.arange(-_FINE, _CHUNK + _FINE)
-    out = np.empty((len(q), 10))
-    for b0 in range(0, len(first), _BATCH):
-        b1 = min(b0 + _BATCH, len(first))
-        starts, ends, per_chunk = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo, h,
-                                                    r, dims, key)
-        range_offs = np.concatenate(([0], np.cumsum(per_chunk[1])))
-        # index arrays for groups of chunks holding at most _MAX_INDEX candidates together
-        c0 = 0
-        while c0 < b1 - b0:
-            total = np.cumsum(per_chunk[0][c0:])
-            c1 = c0 + max(1, int(np.searchsorted(total, _MAX_INDEX, side="right")))
-            idx = _ranges_index(starts[range_offs[c0]:range_offs[c1]], ends[range_offs[c0]:range_offs[c1]])
-            offs = np.concatenate(([0], total[:c1 - c0]))
-            for j in range(c1 - c0):
-                c = b0 + c0 + j
-                _chunk_moments(ah, first[c], last[c], bh, feats, idx[offs[j]:offs[j + 1]], out)
-            c0 = c1
-    sums = np.empty_like(out)
-    sums[qorder] = out
-    return sums
 
 
 def _grid(points, r):
@@ -284,58 +213,161 @@ def _column_z_keys(points, lo, cell, dims, r):
     return keys, span, 8 * float(np.spacing(np.abs(keys).max())) + 1e-9 * r
 
 
-def _row_and_column_features(pts, w, sc, r):
-    """(N, 5) mask rows [a, 1, r²/2 − ‖a‖²/2] and (N, 15) columns: mask columns [b, −‖b‖²/2, 1] (the
-    product of a row and a mask column is > 0 exactly when ‖a − b‖ < r) then the 10 moment features."""
-    sq = 0.5 * np.einsum("ij,ij->i", pts, pts)
-    ah = np.empty((len(pts), 5))
-    ah[:, :3] = pts
-    ah[:, 3] = 1.0
-    ah[:, 4] = 0.5 * r * r - sq
-    cols = np.empty((len(pts), 15))
-    cols[:, :3] = pts
-    cols[:, 3] = -sq
-    cols[:, 4] = 1.0
-    cols[:, 5:] = _moment_features(pts, w, sc)
-    return ah, cols
+def _mask_rows(pts, r):
+    """(N, 5) mask rows [a, 1, r²/2 − ‖a‖²/2]: with a mask column, > 0 exactly when ‖a − b‖ < r."""
+    rows = np.empty((len(pts), 5))
+    rows[:, :3] = pts
+    rows[:, 3] = 1.0
+    rows[:, 4] = 0.5 * r * r - 0.5 * np.einsum("ij,ij->i", pts, pts)
+    return rows
+
+
+def _mask_columns(pts, w, sc):
+    """(5, N) mask columns [b, −‖b‖²/2, 1] (one per point, stored as rows so that a gather of candidates
+    is row-contiguous), then the source weight and scatter when given ((12, N))."""
+    cols = np.empty((5 if w is None and sc is None else 12, len(pts)))
+    cols[:3] = pts.T
+    cols[3] = -0.5 * np.einsum("ij,ij->i", pts, pts)
+    cols[4] = 1.0
+    if len(cols) > 5:
+        cols[5] = 1.0 if w is None else w
+        cols[6:] = 0.0 if sc is None else sc.T
+    return cols
+
+
+def _local_features(cols, centre):
+    """(10, n) moment features [w, w·y, w·yyᵀ (+ scatter) unique entries] of gathered mask columns (see
+    _mask_columns) at y = b − centre."""
+    f = np.empty((10, cols.shape[1]))
+    local = np.subtract(cols[:3], centre[:, None], out=f[1:4])
+    np.multiply(local, local[0], out=f[4:7])  # SYM6 order: xx, xy, xz, yy, yz, zz
+    np.multiply(local[1:], local[1], out=f[7:9])
+    np.multiply(local[2], local[2], out=f[9])
+    if len(cols) == 5:
+        f[0] = 1.0
+        return f
+    f[0] = cols[5]
+    f[1:] *= cols[5]
+    f[4:] += cols[6:]
+    return f
+
+
+def _shift_sums(sums, d):
+    """Moment sums (K, 10) about a centre c -> about c − d (each row its own d (K, 3)), in place. Column by
+    column: fastest with column-major sums and d."""
+    s0 = sums[:, 0]
+    s1 = [sums[:, 1 + a] for a in range(3)]
+    e = [d[:, a] for a in range(3)]
+    s0e = [s0 * e[a] for a in range(3)]
+    for j, (a, b) in enumerate(SYM6):
+        sums[:, 4 + j] += s1[a] * e[b] + (s1[b] + s0e[b]) * e[a]
+    for a in range(3):
+        s1[a] += s0e[a]
+
+
+def _chunks(cell, pts_s):
+    """Chunks (cubes of _CHUNK cells) of points: (members: positions of each chunk's points, grouped,
+    first, last, chunk cell of each chunk (C, 3) in fine cells, box min, box max)."""
+    ccell = cell // _CHUNK
+    cdims = ccell.max(axis=0) + 1
+    ckey = (ccell[:, 0] * cdims[1] + ccell[:, 1]) * cdims[2] + ccell[:, 2]
+    members = np.argsort(ckey, kind="stable")
+    bounds = np.flatnonzero(np.diff(ckey[members])) + 1
+    first = np.concatenate(([0], bounds))
+    last = np.concatenate((bounds, [len(ckey)]))
+    grouped = pts_s[members]
+    return (members, first, last, ccell[members[first]] * _CHUNK, np.minimum.reduceat(grouped, first, axis=0),
+            np.maximum.reduceat(grouped, first, axis=0))
+
+
+def _centred_sums(q, src, w, sc, r) -> np.ndarray:
+    """(K, 10) moment sums of the sources within r of each query (about its chunk's centre); coordinates
+    near the origin."""
+    h = r / _FINE
+    lo = np.minimum(q.min(axis=0), src.min(axis=0))
+    # sources sorted by grid cell; a column (x, y) of cells is one run of keys
+    cell = np.floor((src - lo) / h).astype(np.int64)
+    dims = np.maximum(cell.max(axis=0), np.floor((q.max(axis=0) - lo) / h).astype(np.int64)) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    cols = _mask_columns(src[order], None if w is None else w[order], None if sc is None else sc[order])
+    members, first, last, chunk_cell, bmin, bmax = _chunks(np.floor((q - lo) / h).astype(np.int64), q)
+    rows = _mask_rows(q[members], r)
+    stencil = np.arange(-_FINE, _CHUNK + _FINE)
+    out = np.empty((len(q), 10))
+    for b0 in range(0, len(first), _BATCH):
+        b1 = min(b0 + _BATCH, len(first))
+        starts, ends, per_chunk = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo, h,
+                                                    r, dims, key)
+        range_offs = np.concatenate(([0], np.cumsum(per_chunk[1])))
+        # index arrays for groups of chunks holding at most _MAX_INDEX candidates together
+        c0 = 0
+        while c0 < b1 - b0:
+            total = np.cumsum(per_chunk[0][c0:])
+            c1 = c0 + max(1, int(np.searchsorted(total, _MAX_INDEX, side="right")))
+            idx = _ranges_index(starts[range_offs[c0]:range_offs[c1]], ends[range_offs[c0]:range_offs[c1]])
+            offs = np.concatenate(([0], total[:c1 - c0]))
+            for j in range(c1 - c0):
+                c = b0 + c0 + j
+                _chunk_moments(rows[first[c]:last[c]], cols, idx[offs[j]:offs[j + 1]], 0.5 * (bmin[c] + bmax[c]),
+                               out[first[c]:last[c]])
+            c0 = c1
+    sums = np.empty_like(out)
+    sums[members] = out
+    return sums
+
+
+def _chunk_moments(rows, cols, cand, centre, out) -> None:
+    """Moment sums (about centre) of the candidates within r of each query row of one chunk, into out."""
+    if len(cand) == 0:
+        out[:] = 0.0
+        return
+    c = np.take(cols, cand, axis=1)
+    b, f = c[:5], _local_features(c, centre).T
+    step = max(8, min(_ROWS, _MAX_ELEMENTS // len(cand)))
+    for r0 in range(0, len(rows), step):
+        g = rows[r0:r0 + step] @ b
+        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
+        out[r0:r0 + step] = g @ f
 
 
 def _self_sums(pts, w, sc, r) -> np.ndarray:
-    """(N, 10) moment sums of the points within r of each point (the sources are the queries): each chunk
-    meets its own points and the later chunks' points once, and a pair is added to both of its ends."""
+    """(N, 10) moment sums of the points within r of each point (the sources are the queries), each about
+    its chunk's centre: a chunk meets its own points and the later chunks' points once, and each pair is
+    added to both of its ends."""
     lo, cell, dims, key = _grid(pts, r)
     zkey = _column_z_keys(pts, lo, cell, dims, r)
     order = np.argsort(zkey[0], kind="stable")
     key = key[order]
     zkey = (zkey[0][order],) + zkey[1:]
     pts_s = pts[order]
-    ah, cols = _row_and_column_features(pts_s, None if w is None else w[order], None if sc is None else sc[order], r)
-    ccell = cell[order] // _CHUNK
-    cdims = ccell.max(axis=0) + 1
-    ckey = (ccell[:, 0] * cdims[1] + ccell[:, 1]) * cdims[2] + ccell[:, 2]
-    members = np.argsort(ckey, kind="stable")  # positions (in key order) of each chunk's points
-    bounds = np.flatnonzero(np.diff(ckey[members])) + 1
-    first = np.concatenate(([0], bounds))
-    last = np.concatenate((bounds, [len(pts)]))
-    bmin = np.minimum.reduceat(pts_s[members], first, axis=0)
-    bmax = np.maximum.reduceat(pts_s[members], first, axis=0)
-    chunk_cell = ccell[members[first]] * _CHUNK
+    rows = _mask_rows(pts_s, r)
+    cols = _mask_columns(pts_s, None if w is None else w[order], None if sc is None else sc[order])
+    members, first, last, chunk_cell, bmin, bmax = _chunks(cell[order], pts_s)
+    centres = 0.5 * (bmin + bmax)
+    centre_of = np.empty((len(pts), 3))  # of each point's chunk, in key order
+    centre_of[members] = np.repeat(centres, last - first, axis=0)
+    position = np.empty_like(members)
+    position[members] = np.arange(len(members))
     stencil = np.arange(-_FINE, _CHUNK + _FINE)
     h = r / _FINE
     sums = np.zeros((len(pts), 10))  # in members order
-    position = np.empty_like(members)
-    position[members] = np.arange(len(members))
     for b0 in range(0, len(first), _BATCH):
         b1 = min(b0 + _BATCH, len(first))
         starts, ends, (per_chunk, _) = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo,
                                                          h, r, dims, key, later_only=True, zkey=zkey)
         later = _ranges_index(starts, ends)
-        back = np.empty((len(later), 10), order="F")  # columns contiguous for bincount
+        back = np.empty((len(later), 10))
         offs = np.concatenate(([0], np.cumsum(per_chunk)))
         for j in range(b1 - b0):
             c = b0 + j
-            _pair_moments(ah, cols, members[first[c]:last[c]], later[offs[j]:offs[j + 1]],
+            _pair_moments(rows, cols, members[first[c]:last[c]], later[offs[j]:offs[j + 1]], centres[c],
                           sums[first[c]:last[c]], back[offs[j]:offs[j + 1]])
+        # the later points' sums are about the meeting chunk's centre: move them to their own chunk's
+        back = np.asfortranarray(back)  # contiguous columns
+        _shift_sums(back, np.asfortranarray(np.repeat(centres[b0:b1], per_chunk, axis=0)
+                                            - np.take(centre_of, later, axis=0)))
         later = position[later]
         for k in range(10):
             sums[:, k] += np.bincount(later, back[:, k], minlength=len(pts))
@@ -344,15 +376,16 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
     return out
 
 
-def _pair_moments(ah, cols, own, later, own_out, later_out) -> None:
-    """Moments of the pairs (own point, own or later point) within r: own_out is added each own point's
-    sums (own and later partners), later_out is set to each later point's sums over the own partners."""
+def _pair_moments(rows, cols, own, later, centre, own_out, later_out) -> None:
+    """Moments (about centre) of the pairs (own point, own or later point) within r: own_out is added each
+    own point's sums (own and later partners), later_out is set to each later point's sums over the own
+    partners."""
     n0 = len(own)
-    c = np.take(cols, np.concatenate((own, later)), axis=0)
-    b, f = c[:, :5], c[:, 5:]
-    step = max(8, min(_ROWS, _MAX_ELEMENTS // len(c)))
+    c = np.take(cols, np.concatenate((own, later)), axis=1)
+    b, f = c[:5], _local_features(c, centre).T
+    step = max(8, min(_ROWS, _MAX_ELEMENTS // c.shape[1]))
     if n0 <= step:  # one block (the common case)
-        g = np.take(ah, own, axis=0) @ b.T
+        g = np.take(rows, own, axis=0) @ b
         np.greater(g, 0.0, out=g)
         own_out += g @ f
         later_out[:] = g[:, n0:].T @ f[:n0]
@@ -360,26 +393,11 @@ def _pair_moments(ah, cols, own, later, own_out, later_out) -> None:
     later_out[:] = 0.0
     for r0 in range(0, n0, step):
         r1 = min(r0 + step, n0)
-        g = np.take(ah, own[r0:r1], axis=0) @ b.T
+        g = np.take(rows, own[r0:r1], axis=0) @ b
         np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
         own_out[r0:r1] += g @ f
         if len(later):
             later_out += g[:, n0:].T @ f[r0:r1]
-
-
-def _chunk_moments(ah, row0, row1, bh, feats, cand, out) -> None:
-    """Moment sums (rows row0:row1 of out) of the candidates within r of each query of one chunk."""
-    if len(cand) == 0:
-        out[row0:row1] = 0.0
-        return
-    b = bh[cand]
-    f = feats[cand]
-    step = max(8, min(_ROWS, _MAX_ELEMENTS // len(cand)))
-    for r0 in range(row0, row1, step):
-        r1 = min(r0 + step, row1)
-        g = ah[r0:r1] @ b.T
-        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
-        out[r0:r1] = g @ f
 
 
 def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, later_only=False, zkey=None):
