@@ -6,10 +6,11 @@ grouped in small cubes ("chunks", side r); each chunk gets the sources that can 
 box (a grid of columns of side r/4, pruned column by column), and the exact neighbour masks and moment sums
 of the whole chunk come from dense matrix products (BLAS). When the queries are the sources (MME, MPV),
 a chunk meets only its own and the later chunks' points and every pair is added to both of its ends, so
-each unordered pair is tested once. Mask columns and moment features are computed once per point, about
-the centre of the queries' box; boxes wider than _TILE radii are halved first, which bounds the
-cancellation in E[xxᵀ] − μμᵀ. Sources may be weighted points carrying their own scatter (voxel summaries):
-the sums then use the parallel-axis rule, which is how the fast approximation reuses this code.
+each unordered pair is tested once. The mask columns are computed once per point, about the centre of the
+queries' box (boxes wider than _TILE radii are halved first, which bounds their rounding); the moment sums
+are taken about each query's chunk centre, so that E[xxᵀ] − μμᵀ loses no precision. Sources may be
+weighted points carrying their own scatter (voxel summaries): the sums then use the parallel-axis rule,
+which is how the fast approximation reuses this code.
 """
 from __future__ import annotations
 
