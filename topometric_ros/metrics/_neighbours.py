@@ -25,7 +25,7 @@ _CHUNK = 4
 #: query rows per dense product (keeps the masks in cache)
 _ROWS = 256
 #: chunks whose candidate runs are found together
-_BATCH = 1024
+_BATCH = 256
 #: most candidate indices held at once, and most mask elements per dense product (bound the memory)
 _MAX_INDEX = 1 << 23
 _MAX_ELEMENTS = 1 << 21
@@ -253,12 +253,11 @@ def _local_features(cols, centre):
     return f
 
 
-def _shift_sums(sums, d):
-    """Moment sums (K, 10) about a centre c -> about c − d (each row its own d (K, 3)), in place. Column by
-    column: fastest with column-major sums and d."""
+def _shift_sums(sums, e):
+    """Moment sums (K, 10) about a centre c -> about c − d, in place; each row its own d, given as the three
+    coordinate arrays e (K,). Column by column: fastest with column-major sums."""
     s0 = sums[:, 0]
     s1 = [sums[:, 1 + a] for a in range(3)]
-    e = [d[:, a] for a in range(3)]
     s0e = [s0 * e[a] for a in range(3)]
     for j, (a, b) in enumerate(SYM6):
         sums[:, 4 + j] += s1[a] * e[b] + (s1[b] + s0e[b]) * e[a]
@@ -347,8 +346,8 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
     cols = _mask_columns(pts_s, None if w is None else w[order], None if sc is None else sc[order])
     members, first, last, chunk_cell, bmin, bmax = _chunks(cell[order], pts_s)
     centres = 0.5 * (bmin + bmax)
-    centre_of = np.empty((len(pts), 3))  # of each point's chunk, in key order
-    centre_of[members] = np.repeat(centres, last - first, axis=0)
+    centre_of = np.empty((3, len(pts)))  # of each point's chunk, in key order
+    centre_of[:, members] = np.repeat(centres, last - first, axis=0).T
     position = np.empty_like(members)
     position[members] = np.arange(len(members))
     stencil = np.arange(-_FINE, _CHUNK + _FINE)
@@ -359,16 +358,14 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
         starts, ends, (per_chunk, _) = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo,
                                                          h, r, dims, key, later_only=True, zkey=zkey)
         later = _ranges_index(starts, ends)
-        back = np.empty((len(later), 10))
+        back = np.empty((len(later), 10), order="F")  # contiguous columns for the shift and bincount
         offs = np.concatenate(([0], np.cumsum(per_chunk)))
         for j in range(b1 - b0):
             c = b0 + j
             _pair_moments(rows, cols, members[first[c]:last[c]], later[offs[j]:offs[j + 1]], centres[c],
                           sums[first[c]:last[c]], back[offs[j]:offs[j + 1]])
         # the later points' sums are about the meeting chunk's centre: move them to their own chunk's
-        back = np.asfortranarray(back)  # contiguous columns
-        _shift_sums(back, np.asfortranarray(np.repeat(centres[b0:b1], per_chunk, axis=0)
-                                            - np.take(centre_of, later, axis=0)))
+        _shift_sums(back, [np.repeat(centres[b0:b1, a], per_chunk) - np.take(centre_of[a], later) for a in range(3)])
         later = position[later]
         for k in range(10):
             sums[:, k] += np.bincount(later, back[:, k], minlength=len(pts))
@@ -383,13 +380,17 @@ def _pair_moments(rows, cols, own, later, centre, own_out, later_out) -> None:
     partners."""
     n0 = len(own)
     c = np.take(cols, np.concatenate((own, later)), axis=1)
-    b, f = c[:5], _local_features(c, centre).T
+    ft = _local_features(c, centre)
+    b, f = c[:5], ft.T
     step = max(8, min(_ROWS, _MAX_ELEMENTS // c.shape[1]))
     if n0 <= step:  # one block (the common case)
         g = np.take(rows, own, axis=0) @ b
         np.greater(g, 0.0, out=g)
-        own_out += g @ f
-        later_out[:] = g[:, n0:].T @ f[:n0]
+        own_out += (ft @ g.T).T  # faster than g @ ft.T
+        if later_out.flags.f_contiguous:
+            np.matmul(ft[:, :n0], g[:, n0:], out=later_out.T)
+        else:
+            later_out[:] = g[:, n0:].T @ f[:n0]
         return
     later_out[:] = 0.0
     for r0 in range(0, n0, step):
