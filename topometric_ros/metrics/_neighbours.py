@@ -366,9 +366,13 @@ def _self_sums(pts, w, sc, r) -> np.ndarray:
                           sums[first[c]:last[c]], back[offs[j]:offs[j + 1]])
         # the later points' sums are about the meeting chunk's centre: move them to their own chunk's
         _shift_sums(back, [np.repeat(centres[b0:b1, a], per_chunk) - np.take(centre_of[a], later) for a in range(3)])
-        later = position[later]
-        for k in range(10):
-            sums[:, k] += np.bincount(later, back[:, k], minlength=len(pts))
+        if len(later):
+            later = position[later]
+            p0 = int(later.min())
+            later -= p0
+            span = int(later.max()) + 1
+            for k in range(10):
+                sums[p0:p0 + span, k] += np.bincount(later, back[:, k], minlength=span)
     out = np.empty_like(sums)
     out[order[members]] = sums
     return out
