@@ -38,7 +38,6 @@ _GRID_PHASE = 0.3819660112501051
 
 #: index pairs of the 6 unique entries of a symmetric 3×3 matrix, in the order xx, xy, xz, yy, yz, zz
 SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_SYM_A, _SYM_B = np.array(SYM6).T
 
 
 def aggregate_map(clouds, poses) -> np.ndarray:
