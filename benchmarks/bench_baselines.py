@@ -6,12 +6,24 @@
    (exact=False), and the exact value where it is feasible, with the relative error (goal: 15 scans
    <= 10 s each, within 0.5 %).
 
-Run: ``python -m benchmarks baselines`` (``TOPOMETRIC_BENCH_FULL=1`` adds exact 15-scan garage, minutes).
+Run: ``python -m benchmarks baselines`` (``TOPOMETRIC_BENCH_FULL=1`` adds exact 15-scan garage, minutes;
+``TOPOMETRIC_BENCH_BASE=<git revision>`` times that revision's _neighbours.py on the reference data too,
+interleaved with the current one, for before/after numbers from one run under the same load).
 """
 from __future__ import annotations
 
 import os
+
+# one BLAS thread, set before numpy loads OpenBLAS: single_core() pins the process to one CPU afterwards, and
+# OpenBLAS threads started for all CPUs would then share it (with `python -m benchmarks` running several
+# benchmarks, the first one to import numpy decides)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import statistics
+import subprocess
 import time
+import types
+from pathlib import Path
 
 import numpy as np
 
@@ -28,25 +40,62 @@ def _timed(fn):
     return value, time.perf_counter() - t
 
 
-def reference(results: dict, repeats: int = 5) -> None:
-    from topometric_ros.metrics.mme import mme
-    from topometric_ros.metrics.mpv import mpv
+def neighbours_at(rev: str):
+    """topometric_ros/metrics/_neighbours.py as of git revision ``rev``, as a module (None when git cannot
+    show it)."""
+    root = Path(__file__).resolve().parents[1]
+    shown = subprocess.run(["git", "show", f"{rev}:topometric_ros/metrics/_neighbours.py"], cwd=root,
+                           capture_output=True, text=True)
+    if shown.returncode != 0:
+        return None
+    module = types.ModuleType(f"neighbours_{rev}")
+    exec(compile(shown.stdout.replace("from .. import geometry", "from topometric_ros import geometry"),
+                 f"{rev}:_neighbours.py", "exec"), module.__dict__)
+    return module
 
-    from topometric_ros.metrics import reference_data
+
+def reference(results: dict, repeats: int = 5, base: str | None = None) -> None:
+    from topometric_ros.metrics import _neighbours, reference_data
+    from topometric_ros.metrics.mme import mme_from_covariances
+    from topometric_ros.metrics.mpv import mpv_from_covariances
 
     data = reference_data.load()
     if data is None:
         results["reference"] = f"skipped: no data at {reference_data.folder()}"
         return
     clouds, poses, _ = data
-    REF_MME, REF_MPV = reference_data.REF_MME, reference_data.REF_MPV
-    for name, fn, ref in (("mme", mme, REF_MME), ("mpv", mpv, REF_MPV)):
-        value = fn(clouds, poses, radius=0.2)
-        med, samples = median_ms(lambda: fn(clouds, poses, radius=0.2), repeats=repeats, warmup=1)
-        results[f"reference_{name}_value"] = value
-        results[f"reference_{name}_abs_error"] = abs(value - ref)
-        results[f"reference_{name}_s_median"] = round(med / 1000, 3)
-        results[f"reference_{name}_s_min"] = round(min(samples) / 1000, 3)
+    versions = {"": _neighbours}
+    if base:
+        old = neighbours_at(base)
+        if old is None:
+            results["reference_base"] = f"skipped: git cannot show {base}"
+        else:
+            versions[f"base_{base}_"] = old
+            results["reference_base"] = base
+    metrics = {"mme": (mme_from_covariances, reference_data.REF_MME),
+               "mpv": (mpv_from_covariances, reference_data.REF_MPV)}
+
+    def run(nb, from_covariances):  # as mme() / mpv(): aggregate, neighbourhoods, metric
+        return from_covariances(*nb.map_covariances(nb.aggregate_map(clouds, poses), reference_data.RADIUS))
+
+    samples = {(v, m): [] for v in versions for m in metrics}
+    cpu = {(v, m): [] for v in versions for m in metrics}
+    for k in range(repeats + 1):  # the first round warms up; versions interleaved, same load for both
+        for prefix, nb in versions.items():
+            for name, (fn, ref) in metrics.items():
+                t, c = time.perf_counter(), time.process_time()
+                value = run(nb, fn)
+                if k:
+                    samples[prefix, name].append(time.perf_counter() - t)
+                    cpu[prefix, name].append(time.process_time() - c)
+                else:
+                    results[f"reference_{prefix}{name}_value"] = value
+                    results[f"reference_{prefix}{name}_abs_error"] = abs(value - ref)
+    for (prefix, name), secs in samples.items():
+        results[f"reference_{prefix}{name}_s_median"] = round(statistics.median(secs), 3)
+        results[f"reference_{prefix}{name}_s_min"] = round(min(secs), 3)
+        # CPU seconds of this process: less sensitive than wall time to other jobs on the shared core
+        results[f"reference_{prefix}{name}_cpu_s_median"] = round(statistics.median(cpu[prefix, name]), 3)
 
 
 def windows(results: dict, sizes=(5, 10, 15), repeats: int = 3, full: bool = False) -> None:
@@ -90,7 +139,7 @@ def mom_window(results: dict, scene: str = "garage", n: int = 5) -> None:
 def main() -> dict:
     single_core()
     results: dict = {}
-    reference(results)
+    reference(results, base=os.environ.get("TOPOMETRIC_BENCH_BASE"))
     windows(results, full=os.environ.get("TOPOMETRIC_BENCH_FULL") == "1")
     mom_window(results)
     return record("baselines", results)

@@ -2,10 +2,18 @@
 
 Times score_window (window transform of the cached plane stats + PNE + CPV, baselines off) on ground-truth
 poses and on poses with the noise experiment's rt noise at scale 1 (0.5° and 0.05 m per pose).
-Planes come from planes.detect_planes when it exists, else from the simulator's oracle instances.
+Planes come from process_scan: the scans segmented with their ground-truth labels (segmentation.mode
+labels), planes from planes.detect_planes with the default detector (config planes.detector, ring).
 Goal (metrics issue): 15-scan window ≤ 20 ms median.
 """
 from __future__ import annotations
+
+import os
+
+# one BLAS thread, set before numpy loads OpenBLAS: single_core() pins the process to one CPU afterwards, and
+# OpenBLAS threads started for all CPUs would then share it (with `python -m benchmarks` running several
+# benchmarks, the first one to import numpy decides)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import math
 
@@ -22,7 +30,7 @@ def cached_scans(scene: str, n: int):
 
     frames, _ = simulated_frames(scene, n, seed=0)
     cfg = load_config(overrides={"segmentation.mode": "labels"})
-    return [process_scan(f, cfg, index=k) for k, f in enumerate(frames)], "detect_planes"
+    return [process_scan(f, cfg, index=k) for k, f in enumerate(frames)], f"detect_planes ({cfg.planes.detector})"
 
 
 def main(repeats: int = 30) -> dict:

@@ -50,6 +50,30 @@ def test_ball_covariances_equal_brute_force(rng):
     np.testing.assert_allclose(covs, ref_covs, rtol=1e-10, atol=1e-14)
 
 
+def test_self_neighbourhoods_equal_brute_force(rng):
+    """Queries that are the sources (each pair found once, added to both ends) and a map wider than one
+    tile (halved until 64 radii): the same counts and covariances as one query at a time."""
+    centres = rng.uniform(-3, 3, (6, 3))
+    src = np.concatenate([c + rng.normal(0, 0.4, (300, 3)) for c in centres]) + [100.0, -50.0, 7.0]
+    wide = np.c_[rng.uniform(0, 60, 1500), rng.uniform(0, 1.0, 1500), rng.normal(0, 0.05, 1500)]
+    for pts, radius in ((src, 0.7), (wide, 0.4)):
+        counts, covs = nb.ball_covariances(pts, pts, radius)
+        ref_counts, ref_covs = _brute(pts, pts, radius)
+        np.testing.assert_array_equal(counts, ref_counts)
+        np.testing.assert_allclose(covs, ref_covs, rtol=1e-10, atol=1e-14)
+        assert counts.min() >= 1  # every point is its own neighbour
+
+
+def test_weighted_self_neighbourhoods_equal_the_one_sided_ones(rng):
+    pts = rng.uniform(-2, 2, (2000, 3)) * [1.0, 1.0, 0.1]
+    weights = rng.integers(1, 6, len(pts)).astype(float)
+    scatter = rng.uniform(0, 1e-4, (len(pts), 6))
+    counts, covs = nb.ball_covariances(pts, pts, 0.5, weights, scatter)
+    ref_counts, ref_covs = nb.ball_covariances(pts, pts.copy(), 0.5, weights, scatter)
+    np.testing.assert_array_equal(counts, ref_counts)
+    np.testing.assert_allclose(covs, ref_covs, rtol=1e-10, atol=1e-15)
+
+
 def test_weighted_sources_equal_their_points(rng):
     """A source that summarises a tight cluster (count, centroid, scatter) counts exactly as its points
     when the cluster is not cut by the ball boundary."""

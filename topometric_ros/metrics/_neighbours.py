@@ -2,11 +2,15 @@
 
 For every query point q the sources x with ‖x − q‖ < r (strict, as Open3D's radius search) are found and
 their count and unbiased covariance are returned. Instead of one radius search per point, the queries are
-grouped in small cubes ("chunks"); each chunk gets the sources that can lie within r of its bounding box
-(a grid of cells of size r/4, pruned column by column), and the exact neighbour masks and moment sums of the
-whole chunk come from two dense matrix products (BLAS). Coordinates are taken relative to the chunk centre
-so that E[xxᵀ] − μμᵀ loses no precision. Sources may be weighted points carrying their own scatter (voxel
-summaries): the sums then use the parallel-axis rule, which is how the fast approximation reuses this code.
+grouped in small cubes ("chunks", side r); each chunk gets the sources that can lie within r of its bounding
+box (a grid of columns of side r/4, pruned column by column), and the exact neighbour masks and moment sums
+of the whole chunk come from dense matrix products (BLAS). When the queries are the sources (MME, MPV),
+a chunk meets only its own and the later chunks' points and every pair is added to both of its ends, so
+each unordered pair is tested once. The mask columns are computed once per point, about the centre of the
+queries' box (boxes wider than _TILE radii are halved first, which bounds their rounding); the moment sums
+are taken about each query's chunk centre, so that E[xxᵀ] − μμᵀ loses no precision. Sources may be
+weighted points carrying their own scatter (voxel summaries): the sums then use the parallel-axis rule,
+which is how the fast approximation reuses this code.
 """
 from __future__ import annotations
 
@@ -21,10 +25,13 @@ _CHUNK = 4
 #: query rows per dense product (keeps the masks in cache)
 _ROWS = 256
 #: chunks whose candidate runs are found together
-_BATCH = 1024
+_BATCH = 256
 #: most candidate indices held at once, and most mask elements per dense product (bound the memory)
 _MAX_INDEX = 1 << 23
 _MAX_ELEMENTS = 1 << 21
+
+#: widest query box (in radii) summed about one origin (see _tile_sums)
+_TILE = 256
 
 #: voxel grid offset in voxel units (see voxel_moments)
 _GRID_PHASE = 0.3819660112501051
@@ -126,19 +133,6 @@ def _ranges_index(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return np.repeat(starts - first, lens) + np.arange(total)
 
 
-def _moment_features(local: np.ndarray, weight: np.ndarray | None, scatter: np.ndarray | None) -> np.ndarray:
-    """(M, 10) columns [w, w·y, Σ(yyᵀ) unique entries] of sources at chunk-local positions y."""
-    f = np.empty((len(local), 10))
-    w = 1.0 if weight is None else weight
-    f[:, 0] = w
-    f[:, 1:4] = local * (w if weight is None else weight[:, None])
-    for j, (a, b) in enumerate(SYM6):
-        f[:, 4 + j] = local[:, a] * local[:, b] * w
-    if scatter is not None:
-        f[:, 4:] += scatter
-    return f
-
-
 def _covariances(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, 10) moment sums -> (counts (K,), unbiased covariances (K, 6)); zero where count < 2."""
     n = sums[:, 0]
@@ -160,15 +154,134 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
     (M, 6) internal scatter make each source a summary of several points (a voxel around its centroid).
     Returns (counts (K,) float, covariances (K, 6) in SYM6 order, m²; zero where the count is below 2).
     """
+    same = queries is sources  # every pair is then found once and counted at both ends
     q = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
-    src = np.asarray(sources, dtype=np.float64).reshape(-1, 3)
+    src = q if same else np.asarray(sources, dtype=np.float64).reshape(-1, 3)
     if radius <= 0:
         raise ValueError(f"radius must be positive, got {radius}")
-    counts = np.zeros(len(q))
-    covs = np.zeros((len(q), 6))
-    if len(q) == 0 or len(src) == 0:
-        return counts, covs
-    r = float(radius)
+    w = None if weights is None else np.asarray(weights, np.float64)
+    sc = None if scatter is None else np.asarray(scatter, np.float64)
+    sums = np.zeros((len(q), 10))
+    if len(q) and len(src):
+        _tile_sums(q, src, w, sc, float(radius), sums, same)
+    n, cov = _covariances(sums)
+    return n, cov
+
+
+def _tile_sums(q, src, w, sc, r, out, same=False) -> None:
+    """Moment sums of the sources within r of each query, into out (K, 10), each about the centre of its
+    query's chunk. The masks are computed about the centre of the queries' box; boxes wider than _TILE radii
+    are halved first, which bounds their rounding (about eps · (_TILE / 2)² of r²)."""
+    qlo, qhi = q.min(axis=0), q.max(axis=0)
+    axis = int(np.argmax(qhi - qlo))
+    if same and qhi[axis] - qlo[axis] <= _TILE * r:
+        origin = 0.5 * (qlo + qhi)
+        out[:] = _self_sums(q - origin, w, sc, r)
+        return
+    near = np.all((src > qlo - r) & (src < qhi + r), axis=1)
+    if not near.any():
+        return
+    if not near.all():
+        src = src[near]
+        w = None if w is None else w[near]
+        sc = None if sc is None else sc[near]
+    if qhi[axis] - qlo[axis] > _TILE * r:
+        left = q[:, axis] < 0.5 * (qlo[axis] + qhi[axis])
+        for part in (left, ~left):
+            sub = np.zeros((int(part.sum()), 10))
+            _tile_sums(q[part], src, w, sc, r, sub)
+            out[part] = sub
+        return
+    origin = 0.5 * (qlo + qhi)
+    out[:] = _centred_sums(q - origin, src - origin, w, sc, r)
+
+
+def _grid(points, r):
+    """Fine grid of the points (origin, cell indices (N, 3), dims) and the column-major cell keys."""
+    h = r / _FINE
+    lo = points.min(axis=0)
+    cell = np.floor((points - lo) / h).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    return lo, cell, dims, (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+
+
+def _column_z_keys(points, lo, cell, dims, r):
+    """Float keys column · span + (z − lo_z + 2r) that sort the points by grid column, then by z (so also by
+    cell key), with span > every z range a query asks for; and the margin that covers their rounding."""
+    span = float(points[:, 2].max() - lo[2]) + 4 * r
+    keys = (cell[:, 0] * dims[1] + cell[:, 1]) * span + (points[:, 2] - lo[2] + 2 * r)
+    return keys, span, 8 * float(np.spacing(np.abs(keys).max())) + 1e-9 * r
+
+
+def _mask_rows(pts, r):
+    """(N, 5) mask rows [a, 1, r²/2 − ‖a‖²/2]: with a mask column, > 0 exactly when ‖a − b‖ < r."""
+    rows = np.empty((len(pts), 5))
+    rows[:, :3] = pts
+    rows[:, 3] = 1.0
+    rows[:, 4] = 0.5 * r * r - 0.5 * np.einsum("ij,ij->i", pts, pts)
+    return rows
+
+
+def _mask_columns(pts, w, sc):
+    """(5, N) mask columns [b, −‖b‖²/2, 1] (one per point, stored as rows so that a gather of candidates
+    is row-contiguous), then the source weight and scatter when given ((12, N))."""
+    cols = np.empty((5 if w is None and sc is None else 12, len(pts)))
+    cols[:3] = pts.T
+    cols[3] = -0.5 * np.einsum("ij,ij->i", pts, pts)
+    cols[4] = 1.0
+    if len(cols) > 5:
+        cols[5] = 1.0 if w is None else w
+        cols[6:] = 0.0 if sc is None else sc.T
+    return cols
+
+
+def _local_features(cols, centre):
+    """(10, n) moment features [w, w·y, w·yyᵀ (+ scatter) unique entries] of gathered mask columns (see
+    _mask_columns) at y = b − centre."""
+    f = np.empty((10, cols.shape[1]))
+    local = np.subtract(cols[:3], centre[:, None], out=f[1:4])
+    np.multiply(local, local[0], out=f[4:7])  # SYM6 order: xx, xy, xz, yy, yz, zz
+    np.multiply(local[1:], local[1], out=f[7:9])
+    np.multiply(local[2], local[2], out=f[9])
+    if len(cols) == 5:
+        f[0] = 1.0
+        return f
+    f[0] = cols[5]
+    f[1:] *= cols[5]
+    f[4:] += cols[6:]
+    return f
+
+
+def _shift_sums(sums, e):
+    """Moment sums (K, 10) about a centre c -> about c − d, in place; each row its own d, given as the three
+    coordinate arrays e (K,). Column by column: fastest with column-major sums."""
+    s0 = sums[:, 0]
+    s1 = [sums[:, 1 + a] for a in range(3)]
+    s0e = [s0 * e[a] for a in range(3)]
+    for j, (a, b) in enumerate(SYM6):
+        sums[:, 4 + j] += s1[a] * e[b] + (s1[b] + s0e[b]) * e[a]
+    for a in range(3):
+        s1[a] += s0e[a]
+
+
+def _chunks(cell, pts_s):
+    """Chunks (cubes of _CHUNK cells) of points: (members: positions of each chunk's points, grouped,
+    first, last, chunk cell of each chunk (C, 3) in fine cells, box min, box max)."""
+    ccell = cell // _CHUNK
+    cdims = ccell.max(axis=0) + 1
+    ckey = (ccell[:, 0] * cdims[1] + ccell[:, 1]) * cdims[2] + ccell[:, 2]
+    members = np.argsort(ckey, kind="stable")
+    bounds = np.flatnonzero(np.diff(ckey[members])) + 1
+    first = np.concatenate(([0], bounds))
+    last = np.concatenate((bounds, [len(ckey)]))
+    grouped = pts_s[members]
+    return (members, first, last, ccell[members[first]] * _CHUNK, np.minimum.reduceat(grouped, first, axis=0),
+            np.maximum.reduceat(grouped, first, axis=0))
+
+
+def _centred_sums(q, src, w, sc, r) -> np.ndarray:
+    """(K, 10) moment sums of the sources within r of each query (about its chunk's centre); coordinates
+    near the origin."""
     h = r / _FINE
     lo = np.minimum(q.min(axis=0), src.min(axis=0))
     # sources sorted by grid cell; a column (x, y) of cells is one run of keys
@@ -177,21 +290,9 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     order = np.argsort(key, kind="stable")
     key = key[order]
-    src_s = src[order]
-    w_s = None if weights is None else np.asarray(weights, np.float64)[order]
-    sc_s = None if scatter is None else np.asarray(scatter, np.float64)[order]
-    # queries sorted by chunk
-    qcell = np.floor((q - lo) / (h * _CHUNK)).astype(np.int64)
-    cdims = qcell.max(axis=0) + 1
-    qkey = (qcell[:, 0] * cdims[1] + qcell[:, 1]) * cdims[2] + qcell[:, 2]
-    qorder = np.argsort(qkey, kind="stable")
-    q_s = q[qorder]
-    bounds = np.flatnonzero(np.diff(qkey[qorder])) + 1
-    first = np.concatenate(([0], bounds))
-    last = np.concatenate((bounds, [len(q)]))
-    bmin = np.minimum.reduceat(q_s, first, axis=0)
-    bmax = np.maximum.reduceat(q_s, first, axis=0)
-    chunk_cell = qcell[qorder][first] * _CHUNK
+    cols = _mask_columns(src[order], None if w is None else w[order], None if sc is None else sc[order])
+    members, first, last, chunk_cell, bmin, bmax = _chunks(np.floor((q - lo) / h).astype(np.int64), q)
+    rows = _mask_rows(q[members], r)
     stencil = np.arange(-_FINE, _CHUNK + _FINE)
     out = np.empty((len(q), 10))
     for b0 in range(0, len(first), _BATCH):
@@ -208,41 +309,108 @@ def ball_covariances(queries: np.ndarray, sources: np.ndarray, radius: float, we
             offs = np.concatenate(([0], total[:c1 - c0]))
             for j in range(c1 - c0):
                 c = b0 + c0 + j
-                _chunk_moments(q_s, first[c], last[c], 0.5 * (bmin[c] + bmax[c]), src_s, w_s, sc_s,
-                               idx[offs[j]:offs[j + 1]], r, out)
+                _chunk_moments(rows[first[c]:last[c]], cols, idx[offs[j]:offs[j + 1]], 0.5 * (bmin[c] + bmax[c]),
+                               out[first[c]:last[c]])
             c0 = c1
-    n, cov = _covariances(out)
-    counts[qorder] = n
-    covs[qorder] = cov
-    return counts, covs
+    sums = np.empty_like(out)
+    sums[members] = out
+    return sums
 
 
-def _chunk_moments(q_s, row0, row1, centre, src_s, w_s, sc_s, cand, r, out) -> None:
-    """Moment sums (rows row0:row1 of out) of the candidates within r of each query of one chunk."""
+def _chunk_moments(rows, cols, cand, centre, out) -> None:
+    """Moment sums (about centre) of the candidates within r of each query row of one chunk, into out."""
     if len(cand) == 0:
-        out[row0:row1] = 0.0
+        out[:] = 0.0
         return
-    local = src_s[cand] - centre
-    feats = _moment_features(local, None if w_s is None else w_s[cand], None if sc_s is None else sc_s[cand])
-    bh = np.empty((len(local), 4))
-    bh[:, :3] = local
-    bh[:, 3] = -0.5 * np.einsum("ij,ij->i", local, local)
+    c = np.take(cols, cand, axis=1)
+    b, f = c[:5], _local_features(c, centre).T
     step = max(8, min(_ROWS, _MAX_ELEMENTS // len(cand)))
-    for r0 in range(row0, row1, step):
-        r1 = min(r0 + step, row1)
-        a = q_s[r0:r1] - centre
-        ah = np.ones((len(a), 4))
-        ah[:, :3] = a
-        # ‖a − b‖² < r²  <=>  a·b − ‖b‖²/2 > ‖a‖²/2 − r²/2; the mask is written as 0.0 / 1.0 in place
-        g = ah @ bh.T
-        np.greater(g, (0.5 * np.einsum("ij,ij->i", a, a) - 0.5 * r * r)[:, None], out=g)
-        out[r0:r1] = g @ feats
+    for r0 in range(0, len(rows), step):
+        g = rows[r0:r0 + step] @ b
+        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
+        out[r0:r0 + step] = g @ f
 
 
-def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
+def _self_sums(pts, w, sc, r) -> np.ndarray:
+    """(N, 10) moment sums of the points within r of each point (the sources are the queries), each about
+    its chunk's centre: a chunk meets its own points and the later chunks' points once, and each pair is
+    added to both of its ends."""
+    lo, cell, dims, key = _grid(pts, r)
+    zkey = _column_z_keys(pts, lo, cell, dims, r)
+    order = np.argsort(zkey[0], kind="stable")
+    key = key[order]
+    zkey = (zkey[0][order],) + zkey[1:]
+    pts_s = pts[order]
+    rows = _mask_rows(pts_s, r)
+    cols = _mask_columns(pts_s, None if w is None else w[order], None if sc is None else sc[order])
+    members, first, last, chunk_cell, bmin, bmax = _chunks(cell[order], pts_s)
+    centres = 0.5 * (bmin + bmax)
+    centre_of = np.empty((3, len(pts)))  # of each point's chunk, in key order
+    centre_of[:, members] = np.repeat(centres, last - first, axis=0).T
+    position = np.empty_like(members)
+    position[members] = np.arange(len(members))
+    stencil = np.arange(-_FINE, _CHUNK + _FINE)
+    h = r / _FINE
+    sums = np.zeros((len(pts), 10))  # in members order
+    for b0 in range(0, len(first), _BATCH):
+        b1 = min(b0 + _BATCH, len(first))
+        starts, ends, (per_chunk, _) = _candidate_ranges(bmin[b0:b1], bmax[b0:b1], chunk_cell[b0:b1], stencil, lo,
+                                                         h, r, dims, key, later_only=True, zkey=zkey)
+        later = _ranges_index(starts, ends)
+        back = np.empty((len(later), 10), order="F")  # contiguous columns for the shift and bincount
+        offs = np.concatenate(([0], np.cumsum(per_chunk)))
+        for j in range(b1 - b0):
+            c = b0 + j
+            _pair_moments(rows, cols, members[first[c]:last[c]], later[offs[j]:offs[j + 1]], centres[c],
+                          sums[first[c]:last[c]], back[offs[j]:offs[j + 1]])
+        # the later points' sums are about the meeting chunk's centre: move them to their own chunk's
+        _shift_sums(back, [np.repeat(centres[b0:b1, a], per_chunk) - np.take(centre_of[a], later) for a in range(3)])
+        if len(later):
+            later = position[later]
+            p0 = int(later.min())
+            later -= p0
+            span = int(later.max()) + 1
+            for k in range(10):
+                sums[p0:p0 + span, k] += np.bincount(later, back[:, k], minlength=span)
+    out = np.empty_like(sums)
+    out[order[members]] = sums
+    return out
+
+
+def _pair_moments(rows, cols, own, later, centre, own_out, later_out) -> None:
+    """Moments (about centre) of the pairs (own point, own or later point) within r: own_out is added each
+    own point's sums (own and later partners), later_out is set to each later point's sums over the own
+    partners."""
+    n0 = len(own)
+    c = np.take(cols, np.concatenate((own, later)), axis=1)
+    ft = _local_features(c, centre)
+    b, f = c[:5], ft.T
+    step = max(8, min(_ROWS, _MAX_ELEMENTS // c.shape[1]))
+    if n0 <= step:  # one block (the common case)
+        g = np.take(rows, own, axis=0) @ b
+        np.greater(g, 0.0, out=g)
+        own_out += (ft @ g.T).T  # faster than g @ ft.T
+        if later_out.flags.f_contiguous:
+            np.matmul(ft[:, :n0], g[:, n0:], out=later_out.T)
+        else:
+            later_out[:] = g[:, n0:].T @ f[:n0]
+        return
+    later_out[:] = 0.0
+    for r0 in range(0, n0, step):
+        r1 = min(r0 + step, n0)
+        g = np.take(rows, own[r0:r1], axis=0) @ b
+        np.greater(g, 0.0, out=g)  # the mask, as 0.0 / 1.0 in place
+        own_out[r0:r1] += g @ f
+        if len(later):
+            later_out += g[:, n0:].T @ f[r0:r1]
+
+
+def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key, later_only=False, zkey=None):
     """Runs [start, end) of sorted sources that may lie within r of each chunk's box: one run per (x, y)
-    column of cells, pruned by the exact box distance. Returns (starts, ends, (candidates per chunk,
-    runs per chunk)), runs in chunk order."""
+    column of cells, pruned by the exact box distance (to whole cells in z, or to the points' z when the
+    sources are sorted by z in each column and zkey = (column, z) keys, see _column_z_keys). later_only
+    keeps the sources of later chunks only. Returns (starts, ends, (candidates per chunk, runs per chunk)),
+    runs in chunk order."""
     gx = chunk_cell[:, 0, None] + stencil[None, :]  # (C, S)
     gy = chunk_cell[:, 1, None] + stencil[None, :]
     dx = np.maximum(np.maximum(lo[0] + gx * h - bmax[:, 0, None], bmin[:, 0, None] - (lo[0] + (gx + 1) * h)), 0)
@@ -252,9 +420,23 @@ def _candidate_ranges(bmin, bmax, chunk_cell, stencil, lo, h, r, dims, key):
     dz = np.sqrt(np.maximum(r * r - d2, 0.0))
     z0 = np.clip(np.floor((bmin[:, 2, None, None] - dz - lo[2]) / h).astype(np.int64), 0, dims[2])
     z1 = np.clip(np.floor((bmax[:, 2, None, None] + dz - lo[2]) / h).astype(np.int64) + 1, 0, dims[2])
+    if later_only:  # only the points of later chunks (chunk keys are column-major too)
+        cx, cy = (gx // _CHUNK)[:, :, None], (gy // _CHUNK)[:, None, :]
+        ox, oy = (chunk_cell[:, 0] // _CHUNK)[:, None, None], (chunk_cell[:, 1] // _CHUNK)[:, None, None]
+        same = (cx == ox) & (cy == oy)
+        inside &= (cx > ox) | ((cx == ox) & (cy > oy)) | same
+        z0 = np.where(same, np.maximum(z0, chunk_cell[:, 2, None, None] + _CHUNK), z0)
+        z1 = np.maximum(z0, z1)
     base = (gx[:, :, None] * dims[1] + gy[:, None, :]) * dims[2]
     starts = np.searchsorted(key, (base + z0)[inside])
     ends = np.searchsorted(key, (base + z1)[inside])
+    if zkey is not None:
+        keys, span, margin = zkey
+        column = (base // dims[2] * span)[inside]
+        z_lo = (bmin[:, 2, None, None] - dz - lo[2] + 2 * r)[inside]  # as in _column_z_keys
+        z_hi = (bmax[:, 2, None, None] + dz - lo[2] + 2 * r)[inside]
+        starts = np.maximum(starts, np.searchsorted(keys, column + z_lo - margin))
+        ends = np.maximum(starts, np.minimum(ends, np.searchsorted(keys, column + z_hi + margin, side="right")))
     chunk_of_run = np.nonzero(inside)[0]
     per_chunk = np.bincount(chunk_of_run, ends - starts, minlength=len(bmin)).astype(np.int64)
     runs = np.bincount(chunk_of_run, minlength=len(bmin))
@@ -285,5 +467,6 @@ def map_covariances(points: np.ndarray, radius: float, exact: bool = True, max_q
     centres, weights, scatter, voxel_of = voxel_moments(pts, voxel_ratio * radius)
     query_weight = weights if chosen is None else np.bincount(voxel_of[chosen], minlength=len(weights)).astype(float)
     used = query_weight > 0
-    counts, covs = ball_covariances(centres[used], centres, radius, weights, scatter)
+    queries = centres if used.all() else centres[used]  # the same array: each pair is found once
+    counts, covs = ball_covariances(queries, centres, radius, weights, scatter)
     return counts, covs, query_weight[used]
