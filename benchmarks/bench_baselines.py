@@ -13,12 +13,6 @@ interleaved with the current one, for before/after numbers from one run under th
 from __future__ import annotations
 
 import os
-
-# one BLAS thread, set before numpy loads OpenBLAS: single_core() pins the process to one CPU afterwards, and
-# OpenBLAS threads started for all CPUs would then share it (with `python -m benchmarks` running several
-# benchmarks, the first one to import numpy decides)
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import statistics
 import subprocess
 import time

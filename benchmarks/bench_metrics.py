@@ -8,13 +8,6 @@ Goal (metrics issue): 15-scan window ≤ 20 ms median.
 """
 from __future__ import annotations
 
-import os
-
-# one BLAS thread, set before numpy loads OpenBLAS: single_core() pins the process to one CPU afterwards, and
-# OpenBLAS threads started for all CPUs would then share it (with `python -m benchmarks` running several
-# benchmarks, the first one to import numpy decides)
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import math
 
 import numpy as np
