@@ -21,6 +21,7 @@ class WindowConfig:
     pose_wait_s: float = 0.1  # a scan waits until odometry newer than its stamp + this arrives
     max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
     queue_size: int = 8  # scans waiting for the worker; when full the oldest is dropped
+    pipelined: bool = True  # live: per-scan work in two worker threads (segmentation | planes + window), overlapping on 2 cores
     voxel_size: float = 0.0  # m, voxel downsample per scan before segmentation (0 = off)
     pose_timeout_s: float = 2.0  # s of scan time a scan may wait for odometry before it is dropped
     pose_horizon_s: float = 30.0  # s of odometry kept for the lookup
