@@ -160,6 +160,7 @@ class Monitor:
         self._queue = self._queues[0]
         self._cond = threading.Condition(self._lock)
         self._busy = [False] * len(self.stages)
+        self.stage_cpu_s = [0.0] * len(self.stages)  # CPU time (s) of each stage's thread, window scoring in the last
         self._stop = False
         self._threads: list[threading.Thread] = []
         if live:
@@ -406,7 +407,13 @@ class Monitor:
         """One stage of one scan: (data, index, arrived, ms so far) -> the next stage's item, None on error.
         The last stage pushes the ProcessedScan into the window and scores completed windows."""
         data, index, arrived, ms = item
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        try:
+            return self._stage_step(stage, data, index, arrived, ms, t0)
+        finally:
+            self.stage_cpu_s[stage] += time.thread_time() - cpu0
+
+    def _stage_step(self, stage: int, data: Any, index: int, arrived: float, ms: float, t0: float) -> tuple | None:
         try:
             if stage == 0:
                 out = self.stages[0](data, self.config, self.segmenter, index)
