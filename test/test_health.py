@@ -148,3 +148,28 @@ def test_diagnostics_messages_round_trip_through_cdr():
     assert {kv.key: kv.value for kv in s.values}["rpe_estimate"] == "0.5"
     with pytest.raises(ValueError):
         diagnostic_status(types, "BAD", "", {})
+
+
+def test_persistence_ignores_one_odd_window_but_warns_on_the_second():
+    """warn_persist 2 of 2: one window at 6σ stays OK (named as 'watch'), two in a row WARN on the second;
+    ERROR (at error_sigma) is never delayed."""
+    cfg = HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=2, persist_windows=2,
+                       pne_min_sigma=0.5)
+    h = learned(cfg)
+    med, sigma = h.baseline("pne")
+    odd = result(pne=med + 6 * sigma)
+    assert h.assess(odd).level == "OK" and "watch" in odd.message
+    h.assess(result(pne=med))  # back to normal: the odd window is forgotten
+    assert h.assess(result(pne=med + 6 * sigma)).level == "OK"
+    second = result(pne=med + 6 * sigma)
+    assert h.assess(second).level == "WARN" and "2 of the last 2" in second.message
+    fresh = learned(cfg)
+    assert fresh.assess(result(pne=med + 9 * sigma)).level == "ERROR"  # at once
+
+
+def test_persistence_one_is_the_single_window_rule():
+    a, b = learned(HealthConfig(baseline_windows=10, warn_sigma=4.0, warn_persist=1)), learned(
+        HealthConfig(baseline_windows=10, warn_sigma=4.0))
+    med, sigma = a.baseline("pne")
+    for k in np.linspace(0, 7, 15):
+        assert a.assess(result(pne=med + k * sigma)).level == b.assess(result(pne=med + k * sigma)).level
