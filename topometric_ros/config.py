@@ -96,7 +96,7 @@ class HealthConfig:
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
     warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (held-out sim: 4 -> 5 false WARN/10 min, 5 -> 2)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
-    warn_persist: int = 1  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
+    warn_persist: int = 2  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
     persist_windows: int = 2  # windows the persistence rule looks back over (this one included)
     pne_min_sigma: float = 0.3  # nats, floor of the PNE baseline spread (quiet sites; dev bags: 0.23-0.39 drift-free)
     cpv_min_sigma: float = 0.5  # floor of the ln(CPV) baseline spread (CPV is a variance: compared on a log scale)

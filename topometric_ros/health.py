@@ -6,10 +6,11 @@ rolling over the last ``baseline_history`` calm windows (OK, z below warn_sigma 
 episode nor a slow ramp teaches the baseline).
 Both are compared on a log scale: PNE is already one (an entropy, ½ ln det Σ + c), CPV (a variance, m²)
 through ln CPV, so the spread floors (``pne_min_sigma``, ``cpv_min_sigma``) are unit-free and site-free.
-The robust z = (x − median) / max(1.4826·MAD, floor) raises ERROR at ``error_sigma`` at once and WARN at
-``warn_sigma`` once ``warn_persist`` of the last ``persist_windows`` windows (this one included) were that
-high: drift lasts, a single odd window (a view of few planes) does not, so persistence cuts false alarms
-at a lower threshold. Absolute limits (config, in metric units, 0 = off) apply from the first window.
+The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_sigma`` and ERROR at
+``error_sigma``, once ``warn_persist`` of the last ``persist_windows`` windows (this one included) had a
+z at or above warn_sigma: drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
+calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
+(config, in metric units, 0 = off) apply at once, from the first window.
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
 
@@ -103,7 +104,7 @@ class Health:
             if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
-            elif base and z[metric] >= c.error_sigma:
+            elif base and z[metric] >= c.error_sigma and persistent:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
             elif lim_warn != 0 and value >= lim_warn:
