@@ -88,3 +88,14 @@ def test_score_counts_false_warns_per_ten_minutes_and_detections():
                    (drift, eps, {"bag_s": 4.0}, {"episodes": [{"start": 1.5, "end": 3.0}]})], within=2)
     assert table["false_warns_per_10min"] == pytest.approx(2.0)  # 1 false WARN in 5 min
     assert table["detected"] == table["episodes"] == 1
+
+
+def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():
+    from topometric_ros.alarms import choose_sigma
+
+    rates = {2.0: 30.0, 2.5: 2.0, 3.0: 0.0, 3.5: 0.0, 4.0: 0.4, 4.5: 0.0}
+    sweep = [{"warn_sigma": s, "false_warns_per_10min": r} for s, r in rates.items()]
+    assert choose_sigma(sweep, 0.5, margin_sigma=0.0)["warn_sigma"] == 3.0
+    assert choose_sigma(sweep, 0.5, margin_sigma=0.5)["warn_sigma"] == 3.5
+    assert choose_sigma(sweep, 0.1, margin_sigma=0.0)["warn_sigma"] == 4.5  # 4.0 breaks the target above 3.0
+    assert choose_sigma(sweep, 0.0, margin_sigma=1.0) is None

@@ -89,7 +89,7 @@ def cmd_alarms(args: argparse.Namespace) -> int:
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
                         free_bags=args.free_bags or 6, free_frames=args.free_frames, within=args.within,
-                        target_per_10min=args.target, progress=not args.quiet)
+                        target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet)
         print(format_calibration(doc))
         print(f"wrote {Path(args.out) / 'calibration.json'}, calibration.csv, calibration.png")
         return 0
@@ -324,6 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--calibrate", action="store_true",
                    help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
     a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed (0.5)")
+    a.add_argument("--margin", type=float, default=0.25,
+                   help="calibration: the target must also hold this many sigma below the chosen one (0.25)")
     a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (default 750 = 150 s)")
     a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
     a.add_argument("--quiet", action="store_true")
