@@ -218,12 +218,16 @@ class Monitor:
             self.sensor_frame = frame_id
             self._resolve_extrinsic()
         pts, finite = xyz(fields)
+        all_finite = len(pts) == len(finite)  # the usual case: no per-point copy needed
         per_point = {}
         for name, key, dtype in (("labels", "label", np.uint8), ("ring", "ring", np.uint16),
                                  ("intensity", "intensity", np.float32)):
             a = fields.get(key)
-            per_point[name] = a[finite].astype(dtype, copy=False) if a is not None and a.ndim == 1 else None
-        self.count("nonfinite_points", int((~finite).sum()))
+            if a is not None and a.ndim == 1:
+                per_point[name] = (a if all_finite else a[finite]).astype(dtype, copy=False)
+            else:
+                per_point[name] = None
+        self.count("nonfinite_points", len(finite) - len(pts))
         return self._accept(stamp, pts, per_point, received, finite=True)
 
     def add_odometry(self, msg: Any, received: float | None = None) -> bool:
