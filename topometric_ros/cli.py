@@ -88,7 +88,7 @@ def cmd_alarms(args: argparse.Namespace) -> int:
 
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
-                        free_bags=args.free_bags or 6, free_frames=args.free_frames, within=args.within,
+                        free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
                         target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet)
         print(format_calibration(doc))
         print(f"wrote {Path(args.out) / 'calibration.json'}, calibration.csv, calibration.png")
@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
     a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"])
     a.add_argument("--frames", type=int, default=400, help="scans per drift bag (default 400 = 80 s)")
-    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags (default 5 evaluation, 6 calibration)")
+    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags per group of the split (default 5)")
     a.add_argument("--split", choices=("evaluation", "calibration"), default="evaluation",
                    help="bag set of the table (thresholds are calibrated on 'calibration' only)")
     a.add_argument("--calibrate", action="store_true",
