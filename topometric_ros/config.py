@@ -94,7 +94,7 @@ class HealthConfig:
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
-    warn_sigma: float = 3.25  # robust z above the baseline median -> WARN (calibrated with warn_persist 2: `topometric alarms --calibrate`)
+    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (calibrated with warn_persist 2: `topometric alarms --calibrate`, floor plans 7+9)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
     warn_persist: int = 2  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
     persist_windows: int = 2  # windows the persistence rule looks back over (this one included)
