@@ -19,7 +19,7 @@ def result(pne=1.0, cpv=0.01, n_planes=20, t=0.0):
 def learned(cfg=None, rng=None, n=10):
     """A Health with a baseline from n windows (PNE ~ 1 ± 0.5 nats, CPV ~ 0.01 m² × e^(±0.6))."""
     rng = rng or np.random.default_rng(0)
-    h = Health(cfg or HealthConfig(baseline_windows=n, warn_sigma=4.0, error_sigma=8.0))
+    h = Health(cfg or HealthConfig(baseline_windows=n, warn_sigma=4.0, error_sigma=8.0, warn_persist=1))
     for _ in range(n):
         r = result(1.0 + 0.5 * rng.standard_normal(), 0.01 * np.exp(0.6 * rng.standard_normal()))
         h.assess(r)
@@ -86,7 +86,7 @@ def test_alarms_do_not_teach_the_baseline():
 
 def test_quiet_sites_get_a_floor_on_the_spread():
     """A perfectly constant baseline (MAD 0) must not make every tiny wobble an alarm."""
-    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3, warn_sigma=4.0))
+    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3, warn_sigma=4.0, warn_persist=1))
     for _ in range(5):
         h.assess(result(-9.0, 1e-5))
     assert h.baseline("pne") == (-9.0, pytest.approx(0.2))
@@ -99,7 +99,7 @@ def test_cpv_is_scale_free():
     """The same relative rise of CPV alarms the same, whatever the site's CPV level (log scale)."""
     levels = []
     for scale in (1e-6, 1e-3, 1.0):
-        h = Health(HealthConfig(baseline_windows=10))
+        h = Health(HealthConfig(baseline_windows=10, warn_persist=1))
         for r in [result(1.0, 0.01 * scale * f) for f in (1, 1.2, 0.8, 1.1, 0.9)] * 2:
             h.assess(r)
         levels.append([h.assess(result(1.0, 0.01 * scale * f)).level for f in (1.5, 5, 100)])
@@ -148,3 +148,34 @@ def test_diagnostics_messages_round_trip_through_cdr():
     assert {kv.key: kv.value for kv in s.values}["rpe_estimate"] == "0.5"
     with pytest.raises(ValueError):
         diagnostic_status(types, "BAD", "", {})
+
+
+def test_persistence_ignores_one_odd_window_but_warns_on_the_second():
+    """warn_persist 2 of 2: one window at 6σ (or even 9σ) stays OK (named as 'watch'), two in a row alarm on
+    the second, at the level of the second."""
+    cfg = HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=2, persist_windows=2,
+                       pne_min_sigma=0.5)
+    h = learned(cfg)
+    med, sigma = h.baseline("pne")
+    odd = result(pne=med + 6 * sigma)
+    assert h.assess(odd).level == "OK" and "watch" in odd.message
+    h.assess(result(pne=med))  # back to normal: the odd window is forgotten
+    assert h.assess(result(pne=med + 6 * sigma)).level == "OK"
+    second = result(pne=med + 6 * sigma)
+    assert h.assess(second).level == "WARN" and "2 of the last 2" in second.message
+    fresh = learned(cfg)
+    assert fresh.assess(result(pne=med + 9 * sigma)).level == "OK"
+    assert fresh.assess(result(pne=med + 9 * sigma)).level == "ERROR"
+    limit = learned(HealthConfig(baseline_windows=10, warn_persist=2, pne_error=med + 1.0))
+    assert limit.assess(result(pne=med + 2.0)).level == "ERROR"  # absolute limits act at once
+
+
+def test_with_persistence_every_level_comes_one_window_later_for_a_steady_rise():
+    """A steady rise (drift lasts): 2-of-2 persistence gives, from the second window on, the levels the
+    single-window rule gave one window earlier."""
+    single = learned(HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=1))
+    double = learned(HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=2))
+    med, sigma = single.baseline("pne")
+    for k in np.linspace(0, 10, 21):
+        a, b = single.assess(result(pne=med + k * sigma)).level, double.assess(result(pne=med + k * sigma)).level
+        assert b == (a if k > 4.0 else "OK")  # the first window above 4σ (k = 4.0) is the one held back

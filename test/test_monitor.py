@@ -243,15 +243,75 @@ def test_live_worker_drops_oldest_keeps_memory_flat_and_never_blocks_the_feeder(
     assert max(feed_times) < 10 * work_s
 
 
-def test_live_close_drains_the_queue_and_stops_the_thread():
-    m = Monitor(config(), floor_scan, floor_window, live=True)
+def split_floor_scan(delay=0.0):
+    """floor_scan as two stages (like pipeline.SCAN_STAGES): stage 1 moves the points to the map frame,
+    stage 2 wraps them; each sleeps ``delay`` s (sleep releases the GIL, as torch does)."""
+    def first(frame, cfg, seg, index):
+        time.sleep(delay)
+        return frame, geometry.transform_points(frame.pose, frame.points.astype(np.float64)), index
+
+    def second(item, cfg):
+        time.sleep(delay)
+        frame, world, index = item
+        return ProcessedScan(frame.stamp, frame.pose, [], points=world, index=index)
+
+    return first, second
+
+
+@pytest.mark.parametrize("stages", [None, split_floor_scan()])
+def test_live_close_drains_the_queue_and_stops_the_threads(stages):
+    m = (Monitor(config(), floor_scan, floor_window, live=True) if stages is None
+         else Monitor(config(), None, floor_window, live=True, stages=stages))
     feed(m, 100.0 + np.arange(9) / 5.0)
     assert m.flush(timeout=10)
-    worker = m._thread
-    assert worker.is_alive()
+    workers = list(m._threads)
+    assert len(workers) == (1 if stages is None else 2) and all(w.is_alive() for w in workers)
     m.close()
     assert m.counters["scans_processed"] == 9 and m.counters["windows"] == 3
-    assert not worker.is_alive()
+    assert not any(w.is_alive() for w in workers)
+
+
+def test_two_stages_overlap_and_keep_scan_order():
+    """Two stages of d seconds each: pipelined, n scans take about (n + 1)·d, not 2·n·d; windows in order,
+    equal to the serial ones."""
+    d, n = 0.02, 30
+    serial = Monitor(config(), None, floor_window, stages=split_floor_scan(d))
+    feed(serial, 100.0 + np.arange(n) / 5.0)
+    serial.flush()
+    out = []
+    with Monitor(config(**{"window.queue_size": 2}), None, floor_window, live=True, block=True,
+                 stages=split_floor_scan(d), on_window=lambda r, s: out.append(r)) as m:
+        t0 = time.perf_counter()
+        feed(m, 100.0 + np.arange(n) / 5.0)
+        m.flush()
+        took = time.perf_counter() - t0
+    assert m.counters["scans_processed"] == n and m.counters["dropped_scans"] == 0
+    assert [(r.stamps, r.cpv) for r in out] == [(r.stamps, r.cpv) for r in serial.results]
+    assert took < 1.6 * n * d  # serial would need 2·n·d; sleeping stages overlap even on a busy machine
+
+
+def test_pipelined_live_mode_drops_oldest_at_the_input_only():
+    """Fed 4x faster than the slowest stage: drops are counted at the input queue, every scan is either
+    processed or counted, and the scans in flight stay bounded."""
+    d, n = 0.01, 200
+    m = Monitor(config(**{"window.queue_size": 3}), None, floor_window, live=True, stages=split_floor_scan(d))
+    t_scans = 100.0 + np.arange(n) * 0.2
+    t_odom = np.arange(t_scans[0] - 0.5, t_scans[-1] + 0.5, 0.05)
+    k, most, start = 0, 0, time.perf_counter()
+    for i, t in enumerate(t_scans):
+        while t_odom[k] <= t + 0.1:
+            m.add_pose(t_odom[k], base_pose(t_odom[k]))
+            k += 1
+        m.add_scan(t, floor_points())
+        most = max(most, m.in_flight)
+        time.sleep(max(0.0, start + (i + 1) * d / 4 - time.perf_counter()))
+    m.flush(timeout=10)
+    m.close()
+    c = m.counters
+    assert c["dropped_queue_full"] > 0
+    assert c["scans_processed"] + c["dropped_queue_full"] + c["dropped_no_pose"] == n
+    assert most <= 3 + 2 * (2 + 1)  # input queue + per stage: its queue and the scan it works on
+    assert c["windows"] >= 1
 
 
 def test_blocking_live_mode_processes_every_scan_in_order():
@@ -274,3 +334,43 @@ def test_stale_when_input_stops_in_the_callers_clock():
     assert m.stale(51.0) is None
     level, why = m.stale(53.0)
     assert level == "STALE" and "scans" in why
+
+
+@pytest.fixture(scope="module")
+def sim_frames():
+    from topometric_ros.sim.frames import simulated_frames
+
+    frames, _ = simulated_frames("office1", 10, seed=3, layout_seed=2)
+    return frames
+
+
+def run_real_pipeline(frames, cfg, **kw):
+    """The default stages (pipeline.SCAN_STAGES or process_scan) over frames with exact odometry."""
+    windows = []
+    with Monitor(cfg, on_window=lambda r, s: windows.append((r, [s_.plane_arrays() for s_ in s])), **kw) as m:
+        for f in frames:
+            m.add_pose(f.stamp, f.pose)
+            m.add_scan(f.stamp, f.points, f.labels, f.ring, f.intensity)
+        m.add_pose(frames[-1].stamp + 0.2, frames[-1].pose)
+        m.flush()
+    assert m.counters["scans_processed"] == len(frames) and m.counters["dropped_scans"] == 0
+    return windows
+
+
+@pytest.mark.parametrize("mode", ["labels", "network"])
+def test_pipelined_stages_give_exactly_the_serial_windows(sim_frames, mode):
+    """Real segmentation + ring planes + PNE/CPV: two worker threads (segment | planes + window) give the
+    same WindowResults and the same per-scan planes, bit for bit, as one serial pass of process_scan."""
+    over = {"window.size": 5, "window.extrinsic": [0.0, 0, 0, 0, 0, 0, 1], "segmentation.mode": mode,
+            "health.baseline_windows": 1}
+    serial = run_real_pipeline(sim_frames, load_config(overrides={**over, "window.pipelined": False}))
+    piped = run_real_pipeline(sim_frames, load_config(overrides={**over, "window.pipelined": True}),
+                              live=True, block=True)
+    assert len(serial) == len(piped) == 2
+    for (a, pa), (b, pb) in zip(serial, piped):
+        assert (a.stamps, a.pne, a.cpv, a.n_planes, a.n_groups, a.n_clusters, a.level) == \
+               (b.stamps, b.pne, b.cpv, b.n_planes, b.n_groups, b.n_clusters, b.level)
+        assert np.isfinite(a.pne) and a.n_planes > 10
+        for x, y in zip(pa, pb):
+            for u, v in zip(x, y):
+                np.testing.assert_array_equal(u, v)

@@ -1,52 +1,77 @@
-"""Drift-alarm detection table on held-out simulated bags (issue 5's acceptance measure).
+"""Drift-alarm detection table on simulated bags never used for tuning (issue 5's acceptance measure).
 
-Bags with drift episodes (modes r, t, rt × scales 1, 1.5, 2) and drift-free bags are simulated on a floor
-plan and trajectories no training or test split uses (layout seed HELD_OUT_LAYOUT, seeds from
-HELD_OUT_SEED), replayed deterministically, and scored:
+Two disjoint bag sets (SPLITS) on floor plans and trajectory seeds that no training or test split uses:
+- ``calibration``: thresholds are chosen here (``calibrate``: the smallest health.warn_sigma whose false
+  WARN rate on the calibration drift-free data stays within a margin of the target). Two floor plans:
+  metric statistics differ between floor plans, so one plan is not enough to calibrate on;
+- ``evaluation``: the held-out set the detection table is reported on, with the calibrated config; its
+  bags cycle through four floor plans none of the calibration uses.
+Each group of a set: one bag per drift episode mode and scale (r, t, rt × 1, 1.5, 2) and ``free_bags``
+drift-free bags.
+Scoring:
 - an episode is DETECTED when one of the first ``within`` windows that end after its start is WARN/ERROR;
 - a FALSE WARN is a WARN/ERROR window of a drift-free bag; reported per 10 minutes of drift-free data.
+Replays are kept under out/replays; a replay whose bag and non-health config are unchanged is reused and
+only the health assessment (health.py, a pure function of the window sequence) is run again.
 """
 from __future__ import annotations
 
 import csv
 import json
 import shutil
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
-from .config import Config
+from .config import Config, HealthConfig, flatten
+from .health import Health
 from .replay import ReplayOptions, replay
 from .sim.drift import DriftSpec
 from .sim.writer import SimConfig, load_truth, simulate
 
-HELD_OUT_LAYOUT = 7  # floor-plan seed no split uses
-HELD_OUT_SEED = 5000  # trajectory seeds from here
+#: split -> groups of (floor-plan seeds the bags cycle through, first trajectory seed). Disjoint from each
+#: other and from the segmentation splits (layout 0 train/test seeds 0../1000.., unseen layout 7 seeds 0..).
+#: "calibration" holds every bag thresholds were ever looked at on (layout 7: the first detection table;
+#: layout 9: the first held-out table, which showed one floor plan does not calibrate another);
+#: "evaluation" is fresh floor plans and seeds, used only to report.
+SPLITS = {"calibration": [((7,), 5000), ((9,), 9000)], "evaluation": [((11, 12, 13, 14), 11000)]}
 MODES = ("r", "t", "rt")
 SCALES = (1.0, 1.5, 2.0)
 ALARM = ("WARN", "ERROR")
+GOAL_FALSE_PER_10MIN = 1.0
+SIGMA_GRID = tuple(float(x) for x in np.round(np.arange(2.0, 10.01, 0.25), 2))
+CLEAN_AFTER_S = 10.0  # s after a drift episode's end before a drift bag's windows count as drift-free
 
 
-def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, rate: float = 5.0) -> list[SimConfig]:
-    """The held-out bag set: one bag per (mode, scale), then ``free_bags`` drift-free bags; scenes cycle."""
-    runs, k = [], 0
-    for mode in MODES:
-        for scale in SCALES:
-            runs.append(SimConfig(scene=scenes[k % len(scenes)], layout_seed=HELD_OUT_LAYOUT,
-                                  seed=HELD_OUT_SEED + k, frames=frames, rate=rate,
-                                  drift=DriftSpec(mode, scale)))
-            k += 1
-    for j in range(free_bags):
-        runs.append(SimConfig(scene=scenes[(k + j) % len(scenes)], layout_seed=HELD_OUT_LAYOUT,
-                              seed=HELD_OUT_SEED + k + j, frames=free_frames, rate=rate))
+def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, rate: float = 5.0,
+              split: str = "evaluation") -> list[SimConfig]:
+    """The bag set of ``split``: one bag per (mode, scale), then ``free_bags`` drift-free bags; scenes cycle."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    runs = []
+    for layouts, seed0 in SPLITS[split]:
+        k = 0
+        for mode in MODES:
+            for scale in SCALES:
+                runs.append(SimConfig(scene=scenes[k % len(scenes)], layout_seed=layouts[k % len(layouts)],
+                                      seed=seed0 + k, frames=frames, rate=rate, drift=DriftSpec(mode, scale)))
+                k += 1
+        for j in range(free_bags):
+            runs.append(SimConfig(scene=scenes[(k + j) % len(scenes)], layout_seed=layouts[(k + j) % len(layouts)],
+                                  seed=seed0 + k + j, frames=free_frames, rate=rate))
     return runs
+
+
+def split_description(split: str) -> str:
+    """'layouts 11, 12, 13, 14, seeds 11000+' for reports."""
+    return "; ".join(f"layout{'s' * (len(l) > 1)} {', '.join(map(str, l))}, seeds {s}+" for l, s in SPLITS[split])
 
 
 def _name(sim: SimConfig) -> str:
     d = sim.drift
     tag = "free" if d.mode == "none" else f"{d.mode}{d.scale:g}"
-    return f"{sim.scene}_{tag}_s{sim.seed}"
+    return f"{sim.scene}_{tag}_L{sim.layout_seed}_s{sim.seed}"
 
 
 def _bag(sim: SimConfig, bags: Path, progress: bool) -> Path:
@@ -80,40 +105,205 @@ def episode_hits(records: list[dict], episodes: list[dict], within: int = 2) -> 
     return out
 
 
-def run_detection(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 4,
-                  free_frames: int = 750, within: int = 2, progress: bool = True) -> dict:
-    """Simulate (or reuse) the held-out bags under out/bags, replay each to out/replays, score, and write
-    out/detection.json, out/detection.csv and out/detection.png. Returns the table."""
-    out = Path(out)
-    bags, replays = out / "bags", out / "replays"
+def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
+    """The window records assessed again with ``health`` (a fresh Health over the same window sequence):
+    copies with level and message replaced. Exactly what a replay with that health config gives."""
+    h, out = Health(health), []
+    for r in records:
+        res = _Window(r["pne"], r["cpv"], r["n_planes"])
+        h.assess(res)
+        out.append({**r, "level": res.level, "message": res.message})
+    return out
+
+
+class _Window:
+    """The fields of a WindowResult health.py reads."""
+
+    def __init__(self, pne: float, cpv: float, n_planes: int):
+        self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
+        self.level, self.message = "OK", ""
+
+
+def _same_run(saved: dict, config: Config) -> bool:
+    """A saved replay summary was made with ``config`` apart from its health section."""
+    now = {k: v for k, v in flatten(config).items() if not k.startswith("health.")}
+    was = {k: v for k, v in saved.get("config", {}).items() if not k.startswith("health.")}
+    return now == was and not saved.get("error")
+
+
+def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) -> tuple[list[dict], dict]:
+    """(window records assessed with config.health, replay summary) of one bag of the plan, replayed once."""
+    path = _bag(sim, out / "bags", progress)
+    target = out / "replays" / _name(sim)
+    saved = target / "windows.json"
+    if saved.exists():
+        doc = json.loads(saved.read_text())
+        if _same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == load_truth(path)["config"]:
+            return reassess(doc["windows"], config.health), doc["summary"]
+    res = replay(path, target, config, ReplayOptions(progress=progress, plot=True))
+    if res.summary["error"]:
+        raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
+    res.summary["bag_truth"] = load_truth(path)["config"]
+    doc = json.loads(saved.read_text())
+    doc["summary"]["bag_truth"] = res.summary["bag_truth"]
+    saved.write_text(json.dumps(doc, indent=1))
+    return res.windows, res.summary
+
+
+def clean_windows(records: list[dict], episodes: list[dict], settle_s: float = CLEAN_AFTER_S) -> list[dict]:
+    """Windows of a drift bag that are drift-free: they end before the next episode starts and start at
+    least ``settle_s`` after the previous one ended."""
+    return [r for r in records if not any(r["end"] > ep["start"] and r["start"] < ep["end"] + settle_s
+                                          for ep in episodes)]
+
+
+def score(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: int) -> dict:
+    """The detection table of replayed bags: (sim, window records, summary, truth) per bag. False WARNs are
+    counted on the drift-free bags (the goal's measure) and, apart, on the clean stretches of drift bags."""
     rows, free = [], {"windows": 0, "false_warn_windows": 0, "minutes": 0.0, "bags": []}
-    for sim in plan_bags(scenes, frames, free_bags, free_frames):
-        path = _bag(sim, bags, progress)
-        res = replay(path, replays / _name(sim), config, ReplayOptions(progress=progress, plot=True))
-        if res.summary["error"]:
-            raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
-        truth = load_truth(path)
+    clean = {"windows": 0, "false_warn_windows": 0, "minutes": 0.0}
+    for sim, windows, summary, truth in runs:
         if sim.drift.mode == "none":
-            alarms = [r for r in res.windows if r["level"] in ALARM]
-            free["windows"] += len(res.windows)
+            alarms = [r for r in windows if r["level"] in ALARM]
+            free["windows"] += len(windows)
             free["false_warn_windows"] += len(alarms)
-            free["minutes"] += res.summary["bag_s"] / 60
-            free["bags"].append({"bag": path.name, "windows": len(res.windows), "false_warns": len(alarms),
+            free["minutes"] += summary["bag_s"] / 60
+            free["bags"].append({"bag": _name(sim), "windows": len(windows), "false_warns": len(alarms),
                                  "reasons": sorted({r["message"] for r in alarms})})
         else:
-            hits = [h for h in episode_hits(res.windows, truth["episodes"], within) if h["covered"]]
-            rows.append({"bag": path.name, "mode": sim.drift.mode, "scale": sim.drift.scale,
+            hits = [h for h in episode_hits(windows, truth["episodes"], within) if h["covered"]]
+            calm = clean_windows(windows, truth["episodes"])
+            clean["windows"] += len(calm)
+            clean["false_warn_windows"] += sum(r["level"] in ALARM for r in calm)
+            clean["minutes"] += len(calm) * _window_s(windows) / 60
+            rows.append({"bag": _name(sim), "mode": sim.drift.mode, "scale": sim.drift.scale,
                          "episodes": len(hits), "detected": sum(h["detected"] for h in hits),
                          "latencies": [h["latency_windows"] for h in hits],
-                         "scans_per_s": res.summary["scans_per_s"]})
+                         "scans_per_s": summary.get("scans_per_s")})
     n_ep = sum(r["episodes"] for r in rows)
     n_hit = sum(r["detected"] for r in rows)
     per_10min = 10 * free["false_warn_windows"] / free["minutes"] if free["minutes"] else float("nan")
-    table = {"within_windows": within, "window_size": config.window.size, "rows": rows,
-             "episodes": n_ep, "detected": n_hit, "detection_rate": n_hit / n_ep if n_ep else float("nan"),
-             "drift_free": free, "false_warns_per_10min": per_10min}
+    return {"within_windows": within, "rows": rows, "episodes": n_ep, "detected": n_hit,
+            "detection_rate": n_hit / n_ep if n_ep else float("nan"), "drift_free": free,
+            "false_warns_per_10min": per_10min, "clean_stretches": clean,
+            "clean_false_warns_per_10min": 10 * clean["false_warn_windows"] / clean["minutes"]
+            if clean["minutes"] else float("nan")}
+
+
+def _window_s(records: list[dict]) -> float:
+    """Seconds between window starts (median), the time one window stands for."""
+    starts = np.array([r["start"] for r in records])
+    return float(np.median(np.diff(starts))) if len(starts) > 1 else 0.0
+
+
+def _replay_split(out: Path, config: Config, split: str, scenes, frames, free_bags, free_frames, progress):
+    runs = []
+    for sim in plan_bags(scenes, frames, free_bags, free_frames, split=split):
+        windows, summary = replay_windows(sim, out, config, progress)
+        runs.append((sim, windows, summary, load_truth(out / "bags" / _name(sim))))
+    return runs
+
+
+def run_detection(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
+                  free_frames: int = 750, within: int = 2, progress: bool = True, split: str = "evaluation") -> dict:
+    """Simulate (or reuse) the bags of ``split`` under out/bags, replay each to out/replays (or reuse the
+    replay and re-assess health), score, and write out/detection.json, .csv and .png. Returns the table."""
+    out = Path(out)
+    runs = _replay_split(out, config, split, scenes, frames, free_bags, free_frames, progress)
+    table = score(runs, within)
+    table.update(split=split, bags_from=split_description(split), window_size=config.window.size,
+                 health=asdict(config.health), segmentation=config.segmentation.mode)
     _write(out, table)
     return table
+
+
+def choose_sigma(sweep: list[dict], target_per_10min: float, margin_sigma: float = 0.25) -> dict | None:
+    """The sweep row of the smallest warn_sigma whose false WARN rate meets the target, and so does every
+    sigma from ``margin_sigma`` below it up (false alarms rise steeply below a cliff; a threshold right on
+    the calibration bags' cliff would not hold on new bags). None when no sigma qualifies."""
+    rows = sorted(sweep, key=lambda r: r["warn_sigma"])
+    for row in rows:
+        low = row["warn_sigma"] - margin_sigma - 1e-9
+        if rows[0]["warn_sigma"] > low:
+            continue  # the grid does not reach margin_sigma below: the margin cannot be checked
+        if all(r["false_warns_per_10min"] <= target_per_10min for r in rows if r["warn_sigma"] >= low):
+            return row
+    return None
+
+
+def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
+              free_frames: int = 750, within: int = 2, target_per_10min: float = 0.5, margin_sigma: float = 0.25,
+              progress: bool = True, sigmas=SIGMA_GRID) -> dict:
+    """Choose health.warn_sigma on the CALIBRATION split: the smallest sigma of the grid whose false WARN rate
+    on the calibration drift-free data (drift-free bags and the clean stretches of the drift bags) is <=
+    ``target_per_10min`` (a margin under the goal of 1 per 10 min; the smallest such sigma detects the most).
+    The other health settings (persistence, baseline) are the config's. Writes out/calibration.json/.csv/.png; returns the sweep
+    and the choice. The evaluation split is not touched."""
+    out = Path(out)
+    runs = _replay_split(out, config, "calibration", scenes, frames, free_bags, free_frames, progress)
+    sweep = []
+    for sigma in sigmas:
+        health = replace(config.health, warn_sigma=float(sigma), error_sigma=max(config.health.error_sigma,
+                                                                                 float(sigma)))
+        table = score([(sim, reassess(w, health), s, t) for sim, w, s, t in runs], within)
+        fa = table["drift_free"]["false_warn_windows"] + table["clean_stretches"]["false_warn_windows"]
+        minutes = table["drift_free"]["minutes"] + table["clean_stretches"]["minutes"]
+        sweep.append({"warn_sigma": float(sigma), "detection_rate": table["detection_rate"],
+                      "detected": table["detected"], "episodes": table["episodes"],
+                      "false_warn_windows": fa, "minutes": minutes,
+                      "false_warns_per_10min": 10 * fa / minutes if minutes else float("nan"),
+                      "free_bag_false_warns": table["drift_free"]["false_warn_windows"],
+                      "free_bag_minutes": table["drift_free"]["minutes"]})
+    chosen = choose_sigma(sweep, target_per_10min, margin_sigma)
+    doc = {"split": "calibration", "bags_from": split_description("calibration"),
+           "target_false_warns_per_10min": target_per_10min, "margin_sigma": margin_sigma, "within_windows": within,
+           "health": asdict(config.health), "sweep": sweep, "chosen": chosen}
+    _write_calibration(out, doc)
+    return doc
+
+
+def _write_calibration(out: Path, doc: dict) -> None:
+    from .reports import pyplot, write_csv
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calibration.json").write_text(json.dumps(doc, indent=1))
+    write_csv(out / "calibration.csv", doc["sweep"])
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    x = [r["warn_sigma"] for r in doc["sweep"]]
+    ax.plot(x, [r["false_warns_per_10min"] for r in doc["sweep"]], "o-", color="#d03020", ms=3,
+            label="false WARN / 10 min (drift-free)")
+    ax.axhline(doc["target_false_warns_per_10min"], color="#d03020", ls=":", lw=1, label="calibration target")
+    ax2 = ax.twinx()
+    ax2.plot(x, [r["detection_rate"] for r in doc["sweep"]], "s-", color="#4a7ab0", ms=3, label="detected")
+    ax2.set_ylim(0, 1.05)
+    ax2.set_ylabel(f"episodes detected within {doc['within_windows']} windows")
+    if doc["chosen"]:
+        ax.axvline(doc["chosen"]["warn_sigma"], color="grey", ls="--", lw=1, label="chosen")
+    ax.set_xlabel("health.warn_sigma")
+    ax.set_ylabel("false WARN per 10 min")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("calibration split: false alarms vs detection")
+    fig.tight_layout()
+    fig.savefig(out / "calibration.png", dpi=110)
+    plt.close(fig)
+
+
+def format_calibration(doc: dict) -> str:
+    """The calibration sweep for people."""
+    lines = [f"{'warn_sigma':>10} {'detected':>9} {'false WARN':>10} {'per 10 min':>10}"]
+    for r in doc["sweep"]:
+        lines.append(f"{r['warn_sigma']:>10g} {r['detected']:>4}/{r['episodes']:<4} {r['false_warn_windows']:>10} "
+                     f"{r['false_warns_per_10min']:>10.2f}")
+    c = doc["chosen"]
+    minutes = doc["sweep"][0]["minutes"] if doc["sweep"] else 0.0
+    lines.append("")
+    lines.append(f"calibration split ({doc['bags_from']}; {minutes:.1f} min "
+                 f"drift-free incl. clean stretches of drift bags): " + (f"warn_sigma {c['warn_sigma']:g} is the smallest with <= "
+                                     f"{doc['target_false_warns_per_10min']:g} false WARN per 10 min from "
+                                     f"{c['warn_sigma'] - doc['margin_sigma']:g} up"
+                                     if c else "no sigma of the grid meets the target"))
+    return "\n".join(lines)
 
 
 def _write(out: Path, table: dict) -> None:
@@ -148,7 +338,9 @@ def _write(out: Path, table: dict) -> None:
 
 def format_detection(table: dict) -> str:
     """The detection table for people."""
-    lines = [f"{'mode':>5} {'scale':>5} {'episodes':>8} {'detected':>8}  latency (windows)   bag"]
+    lines = [f"split {table.get('split', '?')} ({table.get('bags_from', '?')}), health.warn_sigma "
+             f"{table.get('health', {}).get('warn_sigma', '?')}, warn_persist {table.get('health', {}).get('warn_persist', '?')}",
+             f"{'mode':>5} {'scale':>5} {'episodes':>8} {'detected':>8}  latency (windows)   bag"]
     for r in table["rows"]:
         lat = " ".join("-" if x is None else str(x) for x in r["latencies"])
         lines.append(f"{r['mode']:>5} {r['scale']:>5g} {r['episodes']:>8} {r['detected']:>8}  {lat:<18}  {r['bag']}")
@@ -157,6 +349,10 @@ def format_detection(table: dict) -> str:
               f"= {100 * table['detection_rate']:.1f} %  (goal >= 95 %)",
               f"false WARN: {f['false_warn_windows']} of {f['windows']} drift-free windows in {f['minutes']:.1f} min "
               f"= {table['false_warns_per_10min']:.2f} per 10 min  (goal <= 1)"]
+    c = table.get("clean_stretches")
+    if c and c["minutes"]:
+        lines.append(f"(clean stretches of the drift bags, >= {CLEAN_AFTER_S:g} s after an episode: "
+                     f"{c['false_warn_windows']} false WARN in {c['minutes']:.1f} min)")
     for b in f["bags"]:
         if b["false_warns"]:
             lines.append(f"  {b['bag']}: {b['false_warns']} false WARN: {'; '.join(b['reasons'][:3])}")

@@ -84,10 +84,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
-    from .alarms import format_detection, run_detection
+    from .alarms import calibrate, format_calibration, format_detection, run_detection
 
-    table = run_detection(args.out, _monitor_config(args), args.scene, frames=args.frames, free_bags=args.free_bags,
-                          free_frames=args.free_frames, within=args.within, progress=not args.quiet)
+    if args.calibrate:
+        doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
+                        free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
+                        target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet)
+        print(format_calibration(doc))
+        print(f"wrote {Path(args.out) / 'calibration.json'}, calibration.csv, calibration.png")
+        return 0
+    table = run_detection(args.out, _monitor_config(args), args.scene, frames=args.frames,
+                          free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
+                          progress=not args.quiet, split=args.split)
     print(format_detection(table))
     print(f"wrote {Path(args.out) / 'detection.json'}, detection.csv, detection.png")
     return 0
@@ -310,7 +318,14 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
     a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"])
     a.add_argument("--frames", type=int, default=400, help="scans per drift bag (default 400 = 80 s)")
-    a.add_argument("--free-bags", type=int, default=4, help="drift-free bags (default 4)")
+    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags per group of the split (default 5)")
+    a.add_argument("--split", choices=("evaluation", "calibration"), default="evaluation",
+                   help="bag set of the table (thresholds are calibrated on 'calibration' only)")
+    a.add_argument("--calibrate", action="store_true",
+                   help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
+    a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed (0.5)")
+    a.add_argument("--margin", type=float, default=0.25,
+                   help="calibration: the target must also hold this many sigma below the chosen one (0.25)")
     a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (default 750 = 150 s)")
     a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
     a.add_argument("--quiet", action="store_true")

@@ -21,6 +21,7 @@ class WindowConfig:
     pose_wait_s: float = 0.1  # a scan waits until odometry newer than its stamp + this arrives
     max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
     queue_size: int = 8  # scans waiting for the worker; when full the oldest is dropped
+    pipelined: bool = True  # live: per-scan work in two worker threads (segmentation | planes + window), overlapping on 2 cores
     voxel_size: float = 0.0  # m, voxel downsample per scan before segmentation (0 = off)
     pose_timeout_s: float = 2.0  # s of scan time a scan may wait for odometry before it is dropped
     pose_horizon_s: float = 30.0  # s of odometry kept for the lookup
@@ -93,8 +94,10 @@ class HealthConfig:
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
-    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (held-out sim: 4 -> 5 false WARN/10 min, 5 -> 2)
+    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (calibrated with warn_persist 2: `topometric alarms --calibrate`, floor plans 7+9)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
+    warn_persist: int = 2  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
+    persist_windows: int = 2  # windows the persistence rule looks back over (this one included)
     pne_min_sigma: float = 0.3  # nats, floor of the PNE baseline spread (quiet sites; dev bags: 0.23-0.39 drift-free)
     cpv_min_sigma: float = 0.5  # floor of the ln(CPV) baseline spread (CPV is a variance: compared on a log scale)
     pne_warn: float = 0.0  # nats, absolute PNE limit -> WARN (0 = off; PNE is usually negative)

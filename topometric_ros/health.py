@@ -7,7 +7,12 @@ episode nor a slow ramp teaches the baseline).
 Both are compared on a log scale: PNE is already one (an entropy, ½ ln det Σ + c), CPV (a variance, m²)
 through ln CPV, so the spread floors (``pne_min_sigma``, ``cpv_min_sigma``) are unit-free and site-free.
 The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_sigma`` and ERROR at
-``error_sigma``. Absolute limits (config, in metric units, 0 = off) apply from the first window.
+``error_sigma``, once ``warn_persist`` of the last ``persist_windows`` windows (this one included) had a
+z at or above warn_sigma: drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
+calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
+(config, in metric units, 0 = off) apply at once, from the first window.
+health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
+(``topometric alarms --calibrate``, alarms.py).
 
 Also here: the diagnostics message builders shared by node.py and replay.py. They take the message
 classes as input (rosbags or rclpy), so this module imports no ROS.
@@ -60,6 +65,7 @@ class Health:
         self.config = config or HealthConfig()
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
+        self._high: deque[bool] = deque(maxlen=max(1, self.config.persist_windows, self.config.warn_persist))
         self.last: Assessment | None = None
 
     def reset_clock(self) -> None:
@@ -81,6 +87,9 @@ class Health:
         c = self.config
         level, reasons, z, warn_at, error_at = "OK", [], {}, {}, {}
         learning = False
+        high = {m: z_ for m, z_ in self._sigma_z(result).items() if z_ >= c.warn_sigma}
+        self._high.append(bool(high))
+        persistent = sum(self._high) >= c.warn_persist
         for metric, (meaning, unit) in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
@@ -95,15 +104,20 @@ class Health:
             if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
-            elif base and z[metric] >= c.error_sigma:
+            elif base and z[metric] >= c.error_sigma and persistent:
                 level = _worse(level, "ERROR")
                 reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
             elif lim_warn != 0 and value >= lim_warn:
                 level = _worse(level, "WARN")
                 reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
-            elif base and z[metric] >= c.warn_sigma:
+            elif base and z[metric] >= c.warn_sigma and persistent:
                 level = _worse(level, "WARN")
-                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
+                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
+                               (f" ({sum(self._high)} of the last {len(self._high)} windows)"
+                                if c.warn_persist > 1 else ""))
+            elif base and z[metric] >= c.warn_sigma:
+                reasons.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
+                               f"{sum(self._high)} of {c.warn_persist} windows needed")
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
             reasons.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
@@ -113,7 +127,9 @@ class Health:
                 value = float(getattr(result, metric))
                 if np.isfinite(value):
                     self._history[metric].append(to_scale(metric, value))
-        if not reasons:
+        if level == "OK" and reasons and all(r.startswith("watch:") for r in reasons):
+            pass  # OK, with the not-yet-persistent rise named
+        elif not reasons:
             if learning:
                 n = min(len(h) for h in self._history.values())
                 reasons.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
@@ -122,6 +138,15 @@ class Health:
         result.level, result.message = level, "; ".join(reasons)
         self.last = Assessment(level, result.message, z, warn_at, error_at)
         return self.last
+
+    def _sigma_z(self, result: Any) -> dict:
+        """Robust z of each finite metric against the baseline (empty while learning)."""
+        out = {}
+        for metric in METRICS:
+            value, base = float(getattr(result, metric)), self.baseline(metric)
+            if np.isfinite(value) and base:
+                out[metric] = (to_scale(metric, value) - base[0]) / base[1]
+        return out
 
     def stale(self, now: float, last_scan: float | None, last_pose: float | None) -> tuple[str, str] | None:
         """("STALE", reason) when no scan or no odometry came within stale_after_s before ``now`` (any clock,

@@ -4,15 +4,19 @@ Clouds and poses arrive separately and out of step. A scan waits (``pending``) u
 its stamp + ``window.pose_wait_s`` has arrived, then gets the odometry pose interpolated at its stamp,
 times the extrinsic (odometry child frame -> sensor frame); a scan with no odometry within
 ``window.max_pose_gap_s`` (or still waiting after ``window.pose_timeout_s`` of scan time) is dropped and
-counted. Each resolved scan is processed ONCE (``scan_fn``: voxel downsample, segmentation, planes) and
-pushed to the sliding window; a window is scored (``window_fn``) and assessed (health.py) when its last
-scan is processed.
+counted. Each resolved scan is processed ONCE (voxel downsample, segmentation, planes) and pushed to the
+sliding window; a window is scored (``window_fn``) and assessed (health.py) when its last scan is processed.
 
-Two modes: ``live=True`` runs the per-scan work in a worker thread behind a bounded queue (when the worker
-falls behind the OLDEST queued scan is dropped and counted, so memory stays flat and the feeder never
-blocks; with ``block=True`` the feeder waits instead, so every scan is processed while reading overlaps
-the work: replay as fast as possible); ``live=False`` does the work in the caller's thread, in order. Bad input (malformed clouds, non-finite points, empty scans, bad quaternions,
-duplicate or backwards stamps) is counted in ``counters`` and skipped; nothing raises.
+The per-scan work is a chain of STAGES (default pipeline.SCAN_STAGES: segment_scan | plane_scan, or one
+``scan_fn``). ``live=True`` runs each stage in its own worker thread, in scan order, so on two cores the
+network (torch releases the GIL) segments scan k+1 while planes are found in scan k and the window is
+scored. The input queue is bounded: when the workers fall behind, the OLDEST queued scan is dropped and
+counted, so memory stays flat and the feeder never blocks; with ``block=True`` the feeder waits instead, so
+every scan is processed (replay as fast as possible). Between stages a short queue (STAGE_QUEUE) makes the
+upstream stage wait, never drop. ``live=False`` runs the same stages in the caller's thread, in order. Every
+stage is a pure function of its input, so serial, pipelined and blocking-live runs give the same windows.
+Bad input (malformed clouds, non-finite points, empty scans, bad quaternions, duplicate or backwards
+stamps) is counted in ``counters`` and skipped; nothing raises.
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue
 #: Counters that are scans lost before processing.
 DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "scan_errors")
 MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
+STAGE_QUEUE = 2  # live: items between two per-scan stages (the upstream stage waits when full)
 
 
 @dataclass
@@ -105,18 +110,27 @@ class Monitor:
     """The drift monitor. Feed ``add_cloud``/``add_scan`` and ``add_odometry``/``add_pose`` in any order.
 
     scan_fn(frame, config, segmenter, index) -> ProcessedScan and window_fn(scans, config) -> WindowResult
-    default to pipeline.process_scan and pipeline.score_window. ``on_window(result, scans)`` is called for
-    every completed window (in the worker thread when live). Use as a context manager, or call ``close``.
+    default to pipeline's stages and pipeline.score_window. ``stages`` splits scan_fn: the first is called
+    as scan_fn is, each later one as stage(previous output, config), the last returns the ProcessedScan.
+    ``on_window(result, scans)`` is called for every completed window (in the last stage's thread when
+    live). Use as a context manager, or call ``close``.
     """
 
     def __init__(self, config: Config | None = None, scan_fn: Callable | None = None,
                  window_fn: Callable | None = None, segmenter: Any = None, live: bool = False,
-                 on_window: Callable | None = None, keep_results: int = 1000, block: bool = False):
+                 on_window: Callable | None = None, keep_results: int = 1000, block: bool = False,
+                 stages: Sequence[Callable] | None = None):
         from . import pipeline
 
         self.config = config or Config()
         w = self.config.window
-        self.scan_fn = scan_fn or pipeline.process_scan
+        if scan_fn is not None and stages is not None:
+            raise ValueError("give scan_fn (one per-scan function) or stages (a split of it), not both")
+        if stages is None:  # the default work is split in two stages unless window.pipelined is off
+            stages = (scan_fn,) if scan_fn else pipeline.SCAN_STAGES if w.pipelined else (pipeline.process_scan,)
+        if not stages:
+            raise ValueError("stages must hold at least one per-scan function")
+        self.stages = tuple(stages)
         self.window_fn = window_fn or pipeline.score_window
         self.segmenter = segmenter
         self.live = live
@@ -140,14 +154,20 @@ class Monitor:
         self.sensor_frame = ""  # frame_id of the clouds (the sensor frame)
         self.map_frame = ""  # frame_id of the odometry (the frame poses and planes live in)
         self._index = 0
-        self._queue: deque = deque()
+        # live: queue i feeds stage i's thread; queue 0 is the bounded input queue (drop-oldest or block), the
+        # queues between stages hold STAGE_QUEUE items and make the upstream stage wait (nothing lost there)
+        self._queues: list[deque] = [deque() for _ in self.stages]
+        self._queue = self._queues[0]
         self._cond = threading.Condition(self._lock)
-        self._busy = False
+        self._busy = [False] * len(self.stages)
+        self.stage_cpu_s = [0.0] * len(self.stages)  # CPU time (s) of each stage's thread, window scoring in the last
         self._stop = False
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         if live:
-            self._thread = threading.Thread(target=self._worker, name="topometric-worker", daemon=True)
-            self._thread.start()
+            for i in range(len(self.stages)):
+                self._threads.append(threading.Thread(target=self._worker, args=(i,), daemon=True,
+                                                      name=f"topometric-stage{i}"))
+                self._threads[-1].start()
 
     # ---------------------------------------------------------------- counters
     def count(self, name: str, n: int = 1) -> None:
@@ -165,8 +185,15 @@ class Monitor:
 
     @property
     def queue_length(self) -> int:
+        """Scans in the input queue (bounded by window.queue_size)."""
         with self._lock:
             return len(self._queue)
+
+    @property
+    def in_flight(self) -> int:
+        """Scans queued or being processed in any stage (bounded by queue_size + stages × (STAGE_QUEUE + 1))."""
+        with self._lock:
+            return sum(map(len, self._queues)) + sum(self._busy)
 
     @property
     def pending_length(self) -> int:
@@ -191,12 +218,16 @@ class Monitor:
             self.sensor_frame = frame_id
             self._resolve_extrinsic()
         pts, finite = xyz(fields)
+        all_finite = len(pts) == len(finite)  # the usual case: no per-point copy needed
         per_point = {}
         for name, key, dtype in (("labels", "label", np.uint8), ("ring", "ring", np.uint16),
                                  ("intensity", "intensity", np.float32)):
             a = fields.get(key)
-            per_point[name] = a[finite].astype(dtype, copy=False) if a is not None and a.ndim == 1 else None
-        self.count("nonfinite_points", int((~finite).sum()))
+            if a is not None and a.ndim == 1:
+                per_point[name] = (a if all_finite else a[finite]).astype(dtype, copy=False)
+            else:
+                per_point[name] = None
+        self.count("nonfinite_points", len(finite) - len(pts))
         return self._accept(stamp, pts, per_point, received, finite=True)
 
     def add_odometry(self, msg: Any, received: float | None = None) -> bool:
@@ -330,7 +361,11 @@ class Monitor:
         index = self._index
         self._index += 1
         if not self.live:
-            self._process(frame, index, arrived)
+            item = (frame, index, arrived, 0.0)
+            for stage in range(len(self.stages)):
+                item = self._run_stage(stage, item)
+                if item is None:
+                    return
             return
         with self._cond:
             size = max(1, self.config.window.queue_size)
@@ -339,36 +374,71 @@ class Monitor:
             elif len(self._queue) >= size:
                 self._queue.popleft()
                 self._counts["dropped_queue_full"] += 1
-            self._queue.append((frame, index, arrived))
+            self._queue.append((frame, index, arrived, 0.0))
             self._cond.notify_all()
 
-    def _worker(self) -> None:
+    def _worker(self, stage: int) -> None:
+        """Thread of one stage: take from its queue in order, run, hand on (waiting while the next is full)."""
+        queue, last = self._queues[stage], stage == len(self.stages) - 1
+        upstream = self._threads[stage - 1] if stage else None
+
+        def finished() -> bool:  # stopping and nothing more can arrive
+            return self._stop and (upstream is None or not upstream.is_alive())
+
         while True:
             with self._cond:
-                while not self._queue and not self._stop:
-                    self._cond.wait()
-                if not self._queue:  # stopping and drained
+                while not queue and not finished():
+                    self._cond.wait(0.1)  # timed: an upstream thread's exit does not notify
+                if not queue:
+                    self._cond.notify_all()
                     return
-                item = self._queue.popleft()
-                self._busy = True
+                item = queue.popleft()
+                self._busy[stage] = True
+                self._cond.notify_all()
             try:
-                self._process(*item)
+                out = self._run_stage(stage, item)
+                if out is not None and not last:
+                    with self._cond:
+                        nxt = self._queues[stage + 1]
+                        self._cond.wait_for(lambda: len(nxt) < STAGE_QUEUE)
+                        nxt.append(out)
             finally:
                 with self._cond:
-                    self._busy = False
+                    self._busy[stage] = False
                     self._cond.notify_all()
 
-    def _process(self, frame: Frame, index: int, arrived: float) -> None:
-        t0 = time.perf_counter()
+    def _run_stage(self, stage: int, item: tuple) -> tuple | None:
+        """One stage of one scan: (data, index, arrived, ms so far) -> the next stage's item, None on error.
+        The last stage pushes the ProcessedScan into the window and scores completed windows."""
+        data, index, arrived, ms = item
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         try:
-            scan = self.scan_fn(frame, self.config, self.segmenter, index)
+            return self._stage_step(stage, data, index, arrived, ms, t0)
+        finally:
+            self.stage_cpu_s[stage] += time.thread_time() - cpu0
+
+    def _stage_step(self, stage: int, data: Any, index: int, arrived: float, ms: float, t0: float) -> tuple | None:
+        try:
+            if stage == 0:
+                out = self.stages[0](data, self.config, self.segmenter, index)
+            else:
+                out = self.stages[stage](data, self.config)
         except Exception as e:  # noqa: BLE001 - a bad scan must not stop the monitor
-            self._error("scan_errors", f"scan {frame.stamp:.3f}: {type(e).__name__}: {e}")
-            return
-        scan.timings["monitor"] = 1000 * (time.perf_counter() - t0)
+            stamp = getattr(data, "stamp", getattr(getattr(data, "frame", None), "stamp", float("nan")))
+            self._error("scan_errors", f"scan {stamp:.3f}: {type(e).__name__}: {e}")
+            return None
+        ms += 1000 * (time.perf_counter() - t0)
+        if stage < len(self.stages) - 1:
+            return out, index, arrived, ms
+        self._finish(out, ms, arrived)
+        return None
+
+    def _finish(self, scan: Any, ms: float, arrived: float) -> None:
+        """A processed scan: count it, push it into the window, score the window when it completes."""
+        scan.timings["monitor"] = ms  # ms, the per-scan stages' compute time (queue waits excluded)
         self.count("scans_processed")
         discarded = self.window.discarded
-        scans = self.window.push(scan, frame.stamp)
+        scans = self.window.push(scan, scan.stamp)
         if self.window.discarded > discarded:
             self.count("windows_discarded", self.window.discarded - discarded)
         if scans is not None:
@@ -403,7 +473,7 @@ class Monitor:
         if not self.live:
             return True
         with self._cond:
-            return self._cond.wait_for(lambda: not self._queue and not self._busy, timeout)
+            return self._cond.wait_for(lambda: not any(self._queues) and not any(self._busy), timeout)
 
     def stale(self, now: float) -> tuple[str, str] | None:
         """(STALE, reason) when no scan or no odometry arrived for health.stale_after_s before ``now``
@@ -412,15 +482,17 @@ class Monitor:
 
     def close(self, drain: bool = True) -> None:
         """Stop the worker (after the queued work when ``drain``)."""
-        if self._thread is None:
+        if not self._threads:
             return
         with self._cond:
             if not drain:
-                self._queue.clear()
+                for queue in self._queues:
+                    queue.clear()
             self._stop = True
             self._cond.notify_all()
-        self._thread.join()
-        self._thread = None
+        for thread in self._threads:
+            thread.join()
+        self._threads = []
 
     def __enter__(self) -> "Monitor":
         return self

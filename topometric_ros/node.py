@@ -52,6 +52,7 @@ RANGES = {
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000),
     "health.stale_after_s": (0.1, 3600.0), "health.baseline_windows": (1, 100_000),
     "health.baseline_history": (1, 1_000_000), "health.warn_sigma": (0.0, 1000.0), "health.error_sigma": (0.0, 1000.0),
+    "health.warn_persist": (1, 1000), "health.persist_windows": (1, 1000),
     "health.pne_min_sigma": (0.0, 100.0), "health.cpv_min_sigma": (0.0, 100.0),
     "health.pne_warn": (-1e3, 1e3), "health.pne_error": (-1e3, 1e3),
     "health.cpv_warn": (0.0, 1e6), "health.cpv_error": (0.0, 1e6), "health.min_planes": (0, 1_000_000),

@@ -190,7 +190,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     gt_stamps, gt_poses, notes = [], [], []
     error, n_scans, first, last = "", 0, None, None
     total = _scan_count(bag_path, opt.points_topic)
-    wall0 = time.perf_counter()
+    wall0, cpu0 = time.perf_counter(), time.thread_time()
     stale_reported = False
     from tqdm import tqdm
 
@@ -227,6 +227,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
         error = f"{type(e).__name__}: {e}"
     finally:
         bar.close()
+        reader_cpu = time.thread_time() - cpu0
         monitor.flush()
         monitor.close()
         rec.close(out / "diagnostics.mcap")
@@ -235,6 +236,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     if gt_stamps:
         _add_rpe(records, rec.poses, np.asarray(gt_stamps), np.stack(gt_poses), monitor.extrinsic)
     summary = _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed)
+    per_scan = 1000 / max(1, summary["scans_processed"])
+    summary["cpu_ms_per_scan"] = {"reader": round(reader_cpu * per_scan, 2),  # reading + decoding (this thread)
+                                  **{f"stage{i}": round(c * per_scan, 2) for i, c in enumerate(monitor.stage_cpu_s)}}
     write_reports(out, records, summary, truth=_truth(bag_path), plot=opt.plot)
     return ReplayResult(out, records, summary)
 

@@ -89,10 +89,12 @@ class PoseBuffer:
         if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
             return None
         i = bisect.bisect_right(self._stamps, stamp) - 1
+        if stamp == self._stamps[i]:  # an exact hit needs no neighbour
+            return self._poses[i].copy()
         j = min(i + 1, len(self._stamps) - 1)
         if stamp - self._stamps[i] > max_gap_s or self._stamps[j] - stamp > max_gap_s:
             return None
-        if i == j or stamp == self._stamps[i]:
+        if i == j:
             return self._poses[i].copy()
         poses, _ = geometry.interpolate_poses(np.array(self._stamps[i:j + 1]), np.stack(self._poses[i:j + 1]),
                                               np.array([stamp]))
