@@ -217,8 +217,8 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for epoch in range(cfg.epochs):
-        if budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
-            break
+        if epoch and budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
+            break  # (the first epoch always runs at least one step)
         model.train().set_circular(False)
         conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
         losses = []
