@@ -127,8 +127,12 @@ class Labeller(nn.Module):
         self.net = net
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        conf, labels = self.net(x).softmax(1).max(1)
-        return labels.to(torch.uint8), conf
+        y = self.net.folded_logits(x)  # (b, k, f, h, w / f): reduce over classes before unfolding azimuth
+        top, labels = y.max(1)
+        conf = 1.0 / torch.exp(y - top.unsqueeze(1)).sum(1)  # = max softmax; cheaper than softmax in ONNX Runtime
+        b, f, h, wf = labels.shape
+        unfold = lambda t: t.permute(0, 2, 3, 1).reshape(b, h, wf * f)  # noqa: E731
+        return unfold(labels.to(torch.uint8)), unfold(conf)
 
 
 class _OnnxRunner:
@@ -236,7 +240,7 @@ class Segmenter:
             image, proj = project(points, ring, intensity, self.height, self.width)
             images.append(image)
             projections.append(proj)
-        labels, conf = self._run(np.stack(images))
+        labels, conf = self._run(images[0][None] if len(images) == 1 else np.stack(images))  # no copy for one scan
         return [(proj.unproject(lab), proj.unproject(cf)) for proj, lab, cf in zip(projections, labels, conf)]
 
     def predict_image(self, image: np.ndarray, proj: Projection) -> tuple[np.ndarray, np.ndarray]:

@@ -114,6 +114,12 @@ class RangeNet(nn.Module):
         return self
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.folded_logits(x)  # (b, k, f, h, w / f)
+        b, k, f, h, wf = y.shape
+        return y.permute(0, 1, 3, 4, 2).reshape(b, k, h, wf * f)  # unfold azimuth
+
+    def folded_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits (B, classes, fold, H, W / fold) before the azimuth unfold: column j * fold + i is [..., i, :, j]."""
         b, _, h, w = x.shape
         f, k = self.spec.fold, self.spec.num_classes
         x = (x - self.mean) / self.std
@@ -123,7 +129,7 @@ class RangeNet(nn.Module):
         s3 = self.enc3(s2)
         y = self.refine(self.fuse1(self.fuse2(s3, s2), s1))
         y = self.head(torch.cat([y, x], 1))  # (b, k * f, h, w / f)
-        return y.view(b, k, f, h, w // f).permute(0, 1, 3, 4, 2).reshape(b, k, h, w)  # unfold azimuth
+        return y.view(b, k, f, h, w // f)
 
 
 def count_parameters(model: nn.Module) -> int:
