@@ -62,3 +62,20 @@ def test_eval_seg_with_tampered_weights_is_a_clear_error(trained, office_bag, tm
     assert main(["eval-seg", str(bag), "--weights", str(tmp_path / "rangenet.pt"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and ("checksum mismatch" in err or "not a safe torch weights file" in err)
+
+
+def test_train_with_validation_keeps_the_best_epoch_and_stops_at_the_time_budget(office_bag, tmp_path):
+    bag, _ = office_bag
+    out = tmp_path / "w"
+    assert main(["train", str(bag), "--val", str(bag), "--epochs", "3", "--crops", "6", "--batch", "6",
+                 "--every", "10", "--seed", "1", "--context", "4,8", "--max-minutes", "60",
+                 "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
+    card = json.loads((out / "model_card.json").read_text())
+    hist = card["training"]["history"]
+    best = max(range(len(hist)), key=lambda i: (hist[i]["val_miou"], i))  # ties: the later epoch
+    assert len(hist) == 3 and card["training"]["selected_epoch"] == best + 1
+    assert card["metrics"]["val"]["val_miou"] == hist[best]["val_miou"] and card["model"]["context"] == [4, 8]
+    out0 = tmp_path / "w0"  # a zero-minute budget: one step, one (partial) epoch, still a loadable card
+    assert main(["train", str(bag), "--epochs", "5", "--crops", "6", "--batch", "6", "--every", "10",
+                 "--max-minutes", "1e-9", "--out", str(out0), "--cache", str(tmp_path / "cache")]) == 0
+    assert len(json.loads((out0 / "model_card.json").read_text())["training"]["history"]) == 1

@@ -4,13 +4,14 @@ from __future__ import annotations
 import copy
 import os
 import pickle
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from topometric_ros import classes as C
-from topometric_ros.config import SegmentationConfig
+from topometric_ros.config import SegmentationConfig, load_config
 from topometric_ros.segmentation.infer import SegmentationError, Segmenter, load_weights
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, lovasz_softmax, model_card,
@@ -76,6 +77,39 @@ def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames)
         np.testing.assert_allclose(cf, one[1], atol=1e-5)
     no_ring = seg.predict(f.points, None, f.intensity)  # rings from elevation: the same image
     np.testing.assert_array_equal(no_ring[0], labels)
+
+
+def test_onnxruntime_backend_agrees_with_eager_pytorch(tmp_path, frames):
+    pytest.importorskip("onnxruntime")
+    _, path = _random_weights(tmp_path)
+    fast = Segmenter.from_config(SegmentationConfig(weights=str(path), backend="onnxruntime"))
+    eager = Segmenter.from_config(SegmentationConfig(weights=str(path), backend="eager"))
+    assert (fast.backend, eager.backend) == ("onnxruntime", "eager")
+    for f in frames:
+        (la, ca), (lb, cb) = fast.predict(f.points, f.ring, f.intensity), eager.predict(f.points, f.ring, f.intensity)
+        assert la.dtype == lb.dtype == np.uint8 and ca.dtype == cb.dtype == np.float32
+        assert (la == lb).mean() >= 0.999
+        np.testing.assert_allclose(ca, cb, atol=1e-4)
+    batch = fast.predict_batch([(g.points, g.ring, g.intensity) for g in frames])  # dynamic batch axis
+    np.testing.assert_array_equal(batch[1][0], fast.predict(frames[1].points, frames[1].ring, frames[1].intensity)[0])
+
+
+def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames, monkeypatch, caplog):
+    _, path = _random_weights(tmp_path)
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # the package is absent: import raises ImportError
+    seg = Segmenter.from_config(SegmentationConfig(weights=str(path)))
+    assert seg.backend == "eager" and "using eager PyTorch" in caplog.text
+    labels, _ = seg.predict(frames[0].points, frames[0].ring, frames[0].intensity)
+    assert labels.shape == (len(frames[0].points),)
+
+
+def test_unknown_backend_is_a_clear_error(tmp_path):
+    _, path = _random_weights(tmp_path)
+    with pytest.raises(SegmentationError, match="unknown segmentation backend"):
+        Segmenter.from_config(SegmentationConfig(weights=str(path), backend="tensorrt"))
+    with pytest.raises(ValueError, match="segmentation.backend"):
+        load_config(overrides={"segmentation.backend": "tensorrt"})
+    assert load_config(overrides={"segmentation.backend": "eager"}).segmentation.backend == "eager"
 
 
 def test_missing_weights_raise_segmentation_error(tmp_path):

@@ -214,8 +214,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     from .segmentation.train import TrainConfig, train
 
     cfg = TrainConfig(epochs=args.epochs, crops_per_epoch=args.crops, batch=args.batch, crop_width=args.crop_width,
-                      lr=args.lr, every=args.every, seed=args.seed, threads=args.threads)
-    spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")))
+                      lr=args.lr, every=args.every, seed=args.seed, threads=args.threads, max_minutes=args.max_minutes)
+    spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")),
+                     context=tuple(int(d) for d in args.context.split(",")))
     bags = expand_bags(args.bags)
     val = expand_bags(args.val) if args.val else []
     command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
@@ -283,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=4e-3)
     t.add_argument("--every", type=int, default=3, help="use every n-th scan of each bag")
     t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
+    t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
+    t.add_argument("--max-minutes", type=float, default=0.0,
+                   help="stop training after this many minutes (0 = run all epochs); keeps the best-val epoch")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")

@@ -35,7 +35,8 @@ class SegmentationConfig:
     mode: str = "network"  # network | labels (the cloud's label field) | none (every point static)
     weights: str = ""  # path to weights; "" = the shipped ones
     device: str = "cpu"  # cpu | cuda
-    threads: int = 1  # torch CPU threads for inference
+    threads: int = 1  # CPU threads for inference (torch and ONNX Runtime)
+    backend: str = "onnxruntime"  # CPU runtime: onnxruntime (exported in memory from the checked weights) | eager (PyTorch; also the fallback without onnxruntime)
     min_confidence: float = 0.0  # network points below this softmax probability become "other" (0 = keep all)
 
 
@@ -121,6 +122,7 @@ NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos"
                    "publish_markers", "diagnostics_period_s", "use_sim_time")
 #: Leaves that take one of a few strings.
 CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
+           "segmentation.backend": ("onnxruntime", "eager"),
            "planes.detector": ("ring", "open3d")}
 
 

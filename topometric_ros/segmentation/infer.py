@@ -3,16 +3,26 @@
 Weights are a torch file {'model_card': dict, 'state_dict': tensors} read with
 ``torch.load(weights_only=True)`` (no arbitrary code runs), checked key by key and shape by shape
 against the net the card describes. Any problem raises SegmentationError with the reason.
+
+CPU backends: ``onnxruntime`` (default) exports the checked network (BatchNorm folded, softmax and arg-max
+included) to ONNX in memory at load time and runs it with ONNX Runtime; the export is verified against
+PyTorch on a fixed input and any failure (or a missing onnxruntime) falls back to ``eager`` PyTorch with a
+warning. The shipped weights stay one ``.pt`` file; no ONNX file is written or read.
 """
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import logging
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
+
+from torch import nn
 
 from .. import classes as C
 from ..config import SegmentationConfig
@@ -21,6 +31,11 @@ from .projection import HEIGHT, WIDTH, Projection, project
 from .train import CARD_NAME, FORMAT_VERSION, WEIGHTS_NAME, state_digest
 
 SHIPPED = Path(__file__).resolve().parent / "weights" / WEIGHTS_NAME
+BACKENDS = ("onnxruntime", "eager")
+#: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
+EXPORT_TOLERANCE = 1e-3
+
+log = logging.getLogger(__name__)
 
 Scan = tuple  # (points (N, 3) float32, ring (N,) | None, intensity (N,) | None)
 
@@ -103,33 +118,112 @@ def build_model(card: dict, state: dict, source: str = "weights") -> RangeNet:
     return model.eval().set_circular(True)
 
 
+class Labeller(nn.Module):
+    """The network plus its read-out: (B, 6, H, W) range images -> (labels (B, H, W) uint8, confidence
+    (B, H, W) float32 softmax probability of the label). One module, so every backend computes the same."""
+
+    def __init__(self, net: RangeNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        y = self.net.folded_logits(x)  # (b, k, f, h, w / f): reduce over classes before unfolding azimuth
+        top, labels = y.max(1)
+        conf = 1.0 / torch.exp(y - top.unsqueeze(1)).sum(1)  # = max softmax; cheaper than softmax in ONNX Runtime
+        b, f, h, wf = labels.shape
+        unfold = lambda t: t.permute(0, 2, 3, 1).reshape(b, h, wf * f)  # noqa: E731
+        return unfold(labels.to(torch.uint8)), unfold(conf)
+
+
+class _OnnxRunner:
+    """A Labeller exported to ONNX in memory and run by ONNX Runtime on the CPU with ``threads`` threads."""
+
+    def __init__(self, labeller: Labeller, height: int, width: int, threads: int):
+        import onnxruntime as ort  # ImportError -> the caller falls back to eager
+
+        x = _probe_input(height, width)
+        buf = io.BytesIO()
+        with warnings.catch_warnings():  # the TorchScript-based exporter warns that it is deprecated
+            warnings.simplefilter("ignore")
+            torch.onnx.export(labeller, (x,), buf, dynamo=False, input_names=["image"],
+                              output_names=["labels", "confidence"], opset_version=17,
+                              dynamic_axes={"image": {0: "batch"}, "labels": {0: "batch"}, "confidence": {0: "batch"}})
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        self.session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
+        self._check(labeller, x)
+
+    def _check(self, labeller: Labeller, x: torch.Tensor) -> None:
+        """The export must give PyTorch's logits on a fixed input (to EXPORT_TOLERANCE)."""
+        with torch.no_grad():
+            want_labels, want_conf = labeller(x)
+        labels, conf = self(x.numpy())
+        diff = float(np.abs(conf - want_conf.numpy()).max())
+        agree = float((labels == want_labels.numpy()).mean())
+        if diff > EXPORT_TOLERANCE or agree < 0.999:
+            raise RuntimeError(f"ONNX export differs from PyTorch: confidence {diff:.2e}, labels agree {agree:.4%}")
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        labels, conf = self.session.run(None, {"image": np.ascontiguousarray(images, np.float32)})
+        return labels, conf
+
+
+def _probe_input(height: int, width: int) -> torch.Tensor:
+    """A fixed (1, 6, H, W) range image of plausible values (ranges 0.5..30 m, a few empty pixels)."""
+    g = torch.Generator().manual_seed(0)
+    rng = 0.5 + 29.5 * torch.rand(height, width, generator=g)
+    az = torch.linspace(0, 2 * np.pi, width + 1)[:-1].expand(height, width)
+    el = torch.linspace(-0.45, 0.27, height).unsqueeze(1).expand(height, width)
+    valid = (torch.rand(height, width, generator=g) > 0.05).float()
+    xyz = torch.stack([rng * el.cos() * az.cos(), rng * el.cos() * az.sin(), rng * el.sin()])
+    inten = 255 * torch.rand(height, width, generator=g)
+    return (torch.cat([rng[None], xyz, inten[None], valid[None]]) * valid)[None].contiguous()
+
+
 class Segmenter:
     """Per-point semantic labels of LiDAR scans with the range-image network.
 
     Use :meth:`from_config`; :meth:`predict` one scan, :meth:`predict_batch` several (same result as one
-    at a time). CPU inference uses ``threads`` torch threads (1 by default).
+    at a time). CPU inference uses ``threads`` threads (1 by default) and ``backend`` onnxruntime (default;
+    eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ``self.backend``
+    says which one runs.
     """
 
-    def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1):
+    def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
+                 backend: str = "onnxruntime"):
         if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
             raise SegmentationError(f"unknown device {device!r}; use cpu or cuda")
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise SegmentationError("device cuda requested but torch sees no CUDA GPU")
+        if backend not in BACKENDS:
+            raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
         self.device = torch.device(device)
         self.threads = threads
         self.card = card
         self.height = int(card.get("input", {}).get("height", HEIGHT))
         self.width = int(card.get("input", {}).get("width", WIDTH))
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
+        self.labeller = Labeller(self.model).eval()
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
+        self.backend, self._onnx = "eager", None
+        if backend == "onnxruntime" and self.device.type == "cpu":
+            try:
+                self._onnx = _OnnxRunner(self.labeller, self.height, self.width, threads)
+                self.backend = "onnxruntime"
+            except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
+                log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
+                            type(e).__name__, str(e).splitlines()[0] if str(e) else "")
 
     @classmethod
     def from_config(cls, cfg: SegmentationConfig) -> "Segmenter":
         """The network of ``cfg.weights`` ("" = the shipped weights) on ``cfg.device`` with ``cfg.threads``."""
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
-        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads)
+        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend)
 
     def predict(self, points: np.ndarray, ring: np.ndarray | None = None,
                 intensity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -146,7 +240,7 @@ class Segmenter:
             image, proj = project(points, ring, intensity, self.height, self.width)
             images.append(image)
             projections.append(proj)
-        labels, conf = self._run(np.stack(images))
+        labels, conf = self._run(images[0][None] if len(images) == 1 else np.stack(images))  # no copy for one scan
         return [(proj.unproject(lab), proj.unproject(cf)) for proj, lab, cf in zip(projections, labels, conf)]
 
     def predict_image(self, image: np.ndarray, proj: Projection) -> tuple[np.ndarray, np.ndarray]:
@@ -154,12 +248,17 @@ class Segmenter:
         labels, conf = self._run(image[None])
         return proj.unproject(labels[0]), proj.unproject(conf[0])
 
-    @torch.inference_mode()
     def _run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images."""
+        if self._onnx is not None:
+            return self._onnx(images)
+        return self._run_eager(images)
+
+    @torch.inference_mode()
+    def _run_eager(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = torch.from_numpy(images).to(self.device, non_blocking=True)
-        conf, labels = self.model(x).softmax(1).max(1)
-        return labels.to(torch.uint8).cpu().numpy(), conf.float().cpu().numpy()
+        labels, conf = self.labeller(x)
+        return labels.cpu().numpy(), conf.float().cpu().numpy()
 
 
 def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = None

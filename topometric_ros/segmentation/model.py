@@ -22,6 +22,7 @@ class ModelSpec:
     num_classes: int = 7
     fold: int = 4  # azimuth columns folded into one pixel
     widths: tuple = (32, 48, 64)  # channels at the folded resolution, 1/2 of it, 1/2 rings × 1/2 of it
+    context: tuple = (2, 4)  # azimuth dilation of the two residual blocks at the coarsest level (context width)
     # per-channel normalisation of the raw input (range, x, y, z, intensity, valid)
     mean: tuple = (8.0, 0.0, 0.0, 0.0, 80.0, 0.5)
     std: tuple = (8.0, 8.0, 8.0, 1.5, 50.0, 0.5)
@@ -98,7 +99,8 @@ class RangeNet(nn.Module):
         cin = spec.in_channels * f
         self.stem = CircConv(cin, c1)
         self.enc2 = nn.Sequential(CircConv(c1, c2, stride=(2, 2)), ResBlock(c2))
-        self.enc3 = nn.Sequential(CircConv(c2, c3, stride=(2, 1)), ResBlock(c3, (1, 2)), ResBlock(c3, (2, 4)))
+        d1, d2 = spec.context
+        self.enc3 = nn.Sequential(CircConv(c2, c3, stride=(2, 1)), ResBlock(c3, (1, d1)), ResBlock(c3, (2, d2)))
         self.fuse2 = Fuse(c3 + c2, c2)
         self.fuse1 = Fuse(c2 + c1, c1)
         self.refine = CircConv(c1, c1)
@@ -112,6 +114,12 @@ class RangeNet(nn.Module):
         return self
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.folded_logits(x)  # (b, k, f, h, w / f)
+        b, k, f, h, wf = y.shape
+        return y.permute(0, 1, 3, 4, 2).reshape(b, k, h, wf * f)  # unfold azimuth
+
+    def folded_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits (B, classes, fold, H, W / fold) before the azimuth unfold: column j * fold + i is [..., i, :, j]."""
         b, _, h, w = x.shape
         f, k = self.spec.fold, self.spec.num_classes
         x = (x - self.mean) / self.std
@@ -121,7 +129,7 @@ class RangeNet(nn.Module):
         s3 = self.enc3(s2)
         y = self.refine(self.fuse1(self.fuse2(s3, s2), s1))
         y = self.head(torch.cat([y, x], 1))  # (b, k * f, h, w / f)
-        return y.view(b, k, f, h, w // f).permute(0, 1, 3, 4, 2).reshape(b, k, h, w)  # unfold azimuth
+        return y.view(b, k, f, h, w // f)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -4,7 +4,9 @@ Scans are projected once into a cache (data.py). Each step takes random azimuth 
 augments them (yaw = azimuth roll, mirror, sensor height and tilt jitter, range noise, point dropout,
 intensity scale / absence) and minimises weighted cross entropy + Lovász-softmax. Crops are trained with
 zero azimuth padding (their ends do not meet); validation and inference use whole scans with circular
-padding. The last epoch's weights are saved (no selection on validation or test data) with a model card.
+padding. With validation bags the epoch of best validation mIoU (paper classes) is saved, else the last
+(test bags are never read). ``max_minutes`` bounds the run: the cosine learning-rate decay then follows
+max(step fraction, time fraction) and training stops cleanly when the time is up.
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ class TrainConfig:
     range_noise: float = 0.01  # m, std of extra range noise
     max_dropout: float = 0.05  # up to this fraction of points removed
     no_intensity: float = 0.1  # probability a crop has no intensity (clouds without the field)
+    max_minutes: float = 0.0  # min, wall-clock budget of the training loop (0 = none; epochs bound it)
 
 
 def class_weights(labels: np.ndarray, num_classes: int = C.NUM_CLASSES, cap: float = 10.0) -> np.ndarray:
@@ -152,9 +155,10 @@ def evaluate_cache(model: RangeNet, images: np.ndarray, labels: np.ndarray, batc
 
 
 def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags: Sequence[str], command: str,
-               history: list[dict], n_scans: int, n_params: int, elapsed_s: float) -> dict:
-    """The JSON model card: classes, input spec, training data and settings, metrics."""
-    last = history[-1] if history else {}
+               history: list[dict], n_scans: int, n_params: int, elapsed_s: float, selected_epoch: int = 0) -> dict:
+    """The JSON model card: classes, input spec, training data and settings, metrics of the saved epoch
+    (``selected_epoch``, 1-based; 0 = the last)."""
+    last = history[selected_epoch - 1] if selected_epoch else (history[-1] if history else {})
     return {
         "name": "rangenet", "format_version": FORMAT_VERSION,
         "classes": list(C.NAMES), "paper_classes": [C.NAMES[c] for c in C.PAPER_CLASSES],
@@ -165,6 +169,7 @@ def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags:
                   "units": "range/x/y/z in m (sensor frame), intensity 0..255, valid 0/1"},
         "training": {"command": command, "bags": [str(b) for b in bags], "val_bags": [str(b) for b in val_bags],
                      "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
+                     "selected_epoch": last.get("epoch", 0),
                      "torch": str(torch.__version__), "history": history},
         "metrics": {"val": {k: last[k] for k in ("val_miou", "val_iou") if k in last}},
     }
@@ -175,7 +180,8 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
           progress: bool = True) -> dict:
     """Train on labelled ``bags``; write OUT/rangenet.pt (state dict + card) and OUT/model_card.json.
 
-    Returns the model card. Validation bags only log metrics per epoch; they never select weights.
+    Returns the model card. With validation bags the weights of the epoch with the best validation mIoU are
+    saved (ties: the later one), else the last epoch's.
     """
     from tqdm import tqdm
 
@@ -195,12 +201,24 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
     warmup = min(100, total // 10)
+    budget_s = 60.0 * cfg.max_minutes
+    t_loop = time.perf_counter()
+
+    def progress(step: int) -> float:
+        """Fraction of the run done: by steps, or by the time budget when that is further along."""
+        done = (step - warmup) / max(1, total - warmup)
+        if budget_s > 0:
+            done = max(done, (time.perf_counter() - t_loop) / budget_s)
+        return min(1.0, done)
+
     sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * (s - warmup) / max(1, total - warmup))))
-    history = []
+        opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * progress(s))))
+    history, best, best_state = [], -1.0, None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for epoch in range(cfg.epochs):
+        if epoch and budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
+            break  # (the first epoch always runs at least one step)
         model.train().set_circular(False)
         conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
         losses = []
@@ -225,19 +243,28 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             losses.append(loss.item())
             conf += confusion(y.numpy(), logits.detach().argmax(1).numpy())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
+            if budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
+                break  # time is up: finish this (partial) epoch with its validation
         entry = {"epoch": epoch + 1, "loss": round(float(np.mean(losses)), 4), "train_miou": round(miou(conf), 4),
                  "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
         if val is not None:
             vconf = evaluate_cache(model, val["images"], val["labels"])
             entry["val_miou"] = round(miou(vconf), 4)
             entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
+            if entry["val_miou"] >= best:
+                best, best_state = entry["val_miou"], {k: v.detach().clone() for k, v in model.state_dict().items()}
+                entry["best"] = True
         history.append(entry)
         val_text = f" val mIoU {100 * entry['val_miou']:.2f}" if "val_miou" in entry else ""
         tqdm.write(f"epoch {epoch + 1:2d}: loss {entry['loss']:.4f} train mIoU {100 * entry['train_miou']:.2f}"
                    f"{val_text} ({entry['seconds']:.0f} s)")
         (out / "train_log.json").write_text(json.dumps(history, indent=2))
+    selected = 0
+    if best_state is not None:
+        model.load_state_dict(best_state)
+        selected = max(e["epoch"] for e in history if e.get("best"))
     card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
-                      len(images), count_parameters(model), time.perf_counter() - t0)
+                      len(images), count_parameters(model), time.perf_counter() - t0, selected)
     save_weights(model, card, out)
     return card
 
