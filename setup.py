@@ -22,6 +22,7 @@ setup(
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
+        "numba>=0.59",  # the compiled radius-neighbourhood kernel of MME / MPV / MOM
         "open3d-cpu>=0.19",
         "rosbags>=0.11,<0.12",
         "torch>=2.1",
