@@ -194,3 +194,16 @@ def test_two_parallel_walls_stay_apart():
     assert [round(p.offset, 2) for p in planes] == [1.5, 1.5]
     assert planes[0].normal @ planes[1].normal < -0.99
     assert sum(p.count for p in planes) >= 0.95 * len(pts)
+
+
+def test_detector_quality_is_pooled_over_trajectory_seeds():
+    from topometric_ros.cli import _seeds
+    from topometric_ros.planes import evaluate_detector
+
+    assert _seeds("0-2,5") == [0, 1, 2, 5]
+    both = evaluate_detector(["office1"], 2, seed=[0, 1], progress=False)["scenes"]["office1"]
+    single = [evaluate_detector(["office1"], 2, seed=s, progress=False)["scenes"]["office1"] for s in (0, 1)]
+    assert both["truth"] == sum(r["truth"] for r in single) > 0
+    assert both["recalled"] == sum(r["recalled"] for r in single)
+    assert both["recall_per_seed"] == {0: single[0]["recall"], 1: single[1]["recall"]}
+    assert both["worst_recall"] == min(r["recall"] for r in single) <= both["recall"]

@@ -16,6 +16,7 @@ joined by a lintel) and refit every plane on all its inliers with :func:`fit_pla
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -611,14 +612,16 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
             "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
 
 
-def evaluate_detector(scenes, frames: int = 20, config=None, seed: int = 0, min_points: int = 200,
+def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequence[int] = 0, min_points: int = 200,
                       progress: bool = True) -> dict:
     """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
 
-    For each scene: ``frames`` scans of simulated_frames(scene, frames, seed=seed); per scene the recall
-    (recalled / ground-truth planes over all scans, see :func:`plane_quality`), the median purity over all
-    detected planes, planes per scan and the median detection time per scan (ms, wall clock, this process).
-    Returns {'detector', 'frames', 'seed', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
+    For each scene and each trajectory seed: ``frames`` scans of simulated_frames(scene, frames, seed=seed);
+    per scene, pooled over the seeds, the recall (recalled / ground-truth planes over all scans, see
+    :func:`plane_quality`), the median purity over all detected planes, planes per scan and the median
+    detection time per scan (ms, wall clock, this process); 'recall_per_seed' and 'worst_recall' show the
+    spread between trajectories.
+    Returns {'detector', 'frames', 'seeds', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
     """
     import time
 
@@ -628,27 +631,34 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int = 0, min_
     from .sim.frames import simulated_frames
 
     cfg = config if config is not None else PlaneConfig()
-    out = {"detector": cfg.detector, "frames": frames, "seed": seed, "min_points": min_points, "scenes": {},
+    seeds = [seed] if isinstance(seed, (int, np.integer)) else list(seed)
+    out = {"detector": cfg.detector, "frames": frames, "seeds": seeds, "min_points": min_points, "scenes": {},
            "scans": []}
     for scene in scenes:
-        sim, instances = simulated_frames(scene, frames, seed=seed)
         truth = recalled = 0
-        purity, n_planes, ms = [], [], []
-        for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} ({cfg.detector})",
-                                           disable=not progress, leave=False)):
-            t = time.perf_counter()
-            planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
-            ms.append(1000 * (time.perf_counter() - t))
-            q = plane_quality(assign, f.labels, inst, min_points)
-            truth, recalled = truth + q["n_truth"], recalled + q["n_recalled"]
-            purity += q["purity"]
-            n_planes.append(len(planes))
-            out["scans"].append({"scene": scene, "frame": i, "points": len(f.points), "planes": len(planes),
-                                 "truth": q["n_truth"], "recalled": q["n_recalled"], "missed": q["missed"],
-                                 "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
-                                 "ms": round(ms[-1], 3)})
+        purity, n_planes, ms, per_seed = [], [], [], {}
+        for s in seeds:
+            sim, instances = simulated_frames(scene, frames, seed=s)
+            seed_truth = seed_recalled = 0
+            for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} seed {s} ({cfg.detector})",
+                                               disable=not progress, leave=False)):
+                t = time.perf_counter()
+                planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
+                ms.append(1000 * (time.perf_counter() - t))
+                q = plane_quality(assign, f.labels, inst, min_points)
+                seed_truth, seed_recalled = seed_truth + q["n_truth"], seed_recalled + q["n_recalled"]
+                purity += q["purity"]
+                n_planes.append(len(planes))
+                out["scans"].append({"scene": scene, "seed": s, "frame": i, "points": len(f.points),
+                                     "planes": len(planes), "truth": q["n_truth"], "recalled": q["n_recalled"],
+                                     "missed": q["missed"],
+                                     "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
+                                     "ms": round(ms[-1], 3)})
+            per_seed[s] = seed_recalled / seed_truth if seed_truth else float("nan")
+            truth, recalled = truth + seed_truth, recalled + seed_recalled
         out["scenes"][scene] = {"recall": recalled / truth if truth else float("nan"), "truth": truth,
-                                "recalled": recalled,
+                                "recalled": recalled, "recall_per_seed": per_seed,
+                                "worst_recall": float(np.nanmin(list(per_seed.values()))),
                                 "median_purity": float(np.median(purity)) if purity else float("nan"),
                                 "min_purity": float(np.min(purity)) if purity else float("nan"),
                                 "planes_per_scan": float(np.mean(n_planes)), "ms_per_scan": float(np.median(ms))}
