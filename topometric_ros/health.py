@@ -87,8 +87,8 @@ class Health:
         c = self.config
         level, reasons, z, warn_at, error_at = "OK", [], {}, {}, {}
         learning = False
-        high = {m: z_ for m, z_ in self._sigma_z(result).items() if z_ >= c.warn_sigma}
-        self._high.append(bool(high))
+        sigma_z = self._sigma_z(result)
+        self._high.append(any(v >= c.warn_sigma for v in sigma_z.values()))
         persistent = sum(self._high) >= c.warn_persist
         for metric, (meaning, unit) in METRICS.items():
             value = float(getattr(result, metric))
@@ -99,7 +99,7 @@ class Health:
             base = self.baseline(metric)
             lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
             warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
-            z[metric] = (to_scale(metric, value) - base[0]) / base[1] if base else float("nan")
+            z[metric] = sigma_z.get(metric, float("nan"))
             learning |= base is None
             if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
@@ -127,9 +127,7 @@ class Health:
                 value = float(getattr(result, metric))
                 if np.isfinite(value):
                     self._history[metric].append(to_scale(metric, value))
-        if level == "OK" and reasons and all(r.startswith("watch:") for r in reasons):
-            pass  # OK, with the not-yet-persistent rise named
-        elif not reasons:
+        if not reasons:  # (an OK window may still carry "watch:" reasons: a rise not yet persistent)
             if learning:
                 n = min(len(h) for h in self._history.values())
                 reasons.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
