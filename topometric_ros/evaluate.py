@@ -121,19 +121,23 @@ def _job_name(source: str, scene: str, traj: int, win: int, noise: str, scale: f
     return f"{_label_tag(source)}_{scene}_{traj}_w{win}_{noise}_{scale:g}"
 
 
+def _setting_seed(spec: ExperimentSpec, scene: str, traj: int, win: int, noise: str, scale: float) -> list[int]:
+    """Seed of one setting (the same for every label source and the baselines)."""
+    return [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene))]
+
+
 def _perturbed_windows(gt: np.ndarray, spec: ExperimentSpec, scene: str, traj: int, win: int, noise: str,
                        scale: float) -> list[np.ndarray]:
     """Estimated poses of every window of a trajectory (gt: (N, 4, 4)) under one setting. Seeded by the setting
     only, so every label source and the baselines see the same perturbed windows."""
-    job_seed = [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene))]
-    rng = np.random.default_rng(job_seed)
+    rng = np.random.default_rng(_setting_seed(spec, scene, traj, win, noise, scale))
     return [_perturb(gt[w * win:(w + 1) * win], noise, scale, rng) for w in range(len(gt) // win)]
 
 
 def _baseline_windows(spec: ExperimentSpec, scene: str, traj: int, win: int, noise: str, scale: float,
                       n_windows: int) -> list[int]:
     """The seeded random subset of windows that get MME/MPV/MOM."""
-    seed = [spec.seed, traj, win, ["r", "t", "rt"].index(noise), int(scale * 100), sum(map(ord, scene)), 1]
+    seed = _setting_seed(spec, scene, traj, win, noise, scale) + [1]
     k = min(spec.baseline_windows, n_windows)
     return sorted(np.random.default_rng(seed).choice(n_windows, k, replace=False).tolist())
 
