@@ -79,3 +79,29 @@ def test_train_with_validation_keeps_the_best_epoch_and_stops_at_the_time_budget
     assert main(["train", str(bag), "--epochs", "5", "--crops", "6", "--batch", "6", "--every", "10",
                  "--max-minutes", "1e-9", "--out", str(out0), "--cache", str(tmp_path / "cache")]) == 0
     assert len(json.loads((out0 / "model_card.json").read_text())["training"]["history"]) == 1
+
+
+def test_train_from_weights_starts_there_and_records_the_parent(trained, office_bag, tmp_path, capsys):
+    from topometric_ros.segmentation.infer import load_weights
+
+    _, out = trained
+    parent = out / "w" / "rangenet.pt"
+    parent_card, parent_state = load_weights(parent)
+    bag, _ = office_bag
+    child = tmp_path / "ft"
+    # --widths/--context differ from the parent's network: the parent's network is what is trained
+    assert main(["train", str(bag), "--init", str(parent), "--widths", "8,8,8", "--epochs", "1", "--crops", "6",
+                 "--batch", "6", "--every", "10", "--lr", "0", "--out", str(child),
+                 "--cache", str(out / "cache")]) == 0
+    card, state = load_weights(child / "rangenet.pt")
+    init = card["training"]["init"]
+    assert init["weights"] == str(parent) and init["command"] == parent_card["training"]["command"]
+    assert init["seed"] == 3 and card["model"] == parent_card["model"]
+    # lr 0: the optimiser never moved a weight, so the child holds the parent's tensors (BatchNorm statistics
+    # still follow the new batches)
+    moved = [k for k in parent_state if "running" not in k and "num_batches" not in k
+             and not (state[k] == parent_state[k]).all()]
+    assert not moved
+    assert main(["train", str(bag), "--init", str(tmp_path / "missing.pt"), "--epochs", "1", "--out",
+                 str(tmp_path / "x"), "--cache", str(out / "cache")]) == 2
+    assert "segmentation weights not found" in capsys.readouterr().err

@@ -236,7 +236,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     val = expand_bags(args.val) if args.val else []
     command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
-    card = train(bags, args.out, cfg, spec, val, args.cache, command)
+    card = train(bags, args.out, cfg, spec, val, args.cache, command, init=args.init or None)
     val_m = card["metrics"].get("val", {})
     if "val_miou" in val_m:
         print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
@@ -303,6 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-minutes", type=float, default=0.0,
                    help="stop training after this many minutes (0 = run all epochs); keeps the best-val epoch")
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--init", default="", help="start from these weights (fine-tuning; their network replaces "
+                                              "--widths/--context; recorded in the model card)")
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
     t.set_defaults(func=cmd_train)

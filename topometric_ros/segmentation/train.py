@@ -155,9 +155,10 @@ def evaluate_cache(model: RangeNet, images: np.ndarray, labels: np.ndarray, batc
 
 
 def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags: Sequence[str], command: str,
-               history: list[dict], n_scans: int, n_params: int, elapsed_s: float, selected_epoch: int = 0) -> dict:
+               history: list[dict], n_scans: int, n_params: int, elapsed_s: float, selected_epoch: int = 0,
+               init: dict | None = None) -> dict:
     """The JSON model card: classes, input spec, training data and settings, metrics of the saved epoch
-    (``selected_epoch``, 1-based; 0 = the last)."""
+    (``selected_epoch``, 1-based; 0 = the last); ``init``: what the run started from (see :func:`init_record`)."""
     last = history[selected_epoch - 1] if selected_epoch else (history[-1] if history else {})
     return {
         "name": "rangenet", "format_version": FORMAT_VERSION,
@@ -169,19 +170,31 @@ def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags:
                   "units": "range/x/y/z in m (sensor frame), intensity 0..255, valid 0/1"},
         "training": {"command": command, "bags": [str(b) for b in bags], "val_bags": [str(b) for b in val_bags],
                      "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
-                     "selected_epoch": last.get("epoch", 0),
+                     "selected_epoch": last.get("epoch", 0), "init": init,
                      "torch": str(torch.__version__), "history": history},
         "metrics": {"val": {k: last[k] for k in ("val_miou", "val_iou") if k in last}},
     }
 
 
+def init_record(path: str | Path, card: dict, state: dict) -> dict:
+    """What a fine-tuning run started from, for its model card: the file, its tensors' digest, and the
+    parent's own training command, seed, time and validation result (so the chain can be rerun)."""
+    parent = card.get("training", {})
+    return {"weights": str(path), "state_sha256": state_digest(state), "command": parent.get("command"),
+            "seed": parent.get("seed"), "elapsed_s": parent.get("elapsed_s"),
+            "selected_epoch": parent.get("selected_epoch"), "val": card.get("metrics", {}).get("val"),
+            "init": parent.get("init")}
+
+
 def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainConfig(), spec: ModelSpec = ModelSpec(),
           val_bags: Sequence[str | Path] = (), cache_dir: str | Path = "data/cache", command: str = "",
-          progress: bool = True) -> dict:
+          progress: bool = True, init: str | Path | None = None) -> dict:
     """Train on labelled ``bags``; write OUT/rangenet.pt (state dict + card) and OUT/model_card.json.
 
-    Returns the model card. With validation bags the weights of the epoch with the best validation mIoU are
-    saved (ties: the later one), else the last epoch's.
+    ``init``: a weights file (checked as the Segmenter checks it) to start from instead of random weights
+    (fine-tuning); its network (model card) replaces ``spec``. Returns the model card. With validation bags
+    the weights of the epoch with the best validation mIoU are saved (ties: the later one), else the last
+    epoch's.
     """
     from tqdm import tqdm
 
@@ -196,7 +209,14 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     val = load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress) if val_bags else None
     images, labels = data["images"], data["labels"]
     weights = torch.from_numpy(class_weights(labels))
-    model = RangeNet(spec)
+    if init:
+        from .infer import build_model, load_weights
+
+        init_card, init_state = load_weights(init)
+        model, started = build_model(init_card, init_state, str(init)), init_record(init, init_card, init_state)
+        spec = model.spec
+    else:
+        model, started = RangeNet(spec), None
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
@@ -264,7 +284,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         model.load_state_dict(best_state)
         selected = max(e["epoch"] for e in history if e.get("best"))
     card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
-                      len(images), count_parameters(model), time.perf_counter() - t0, selected)
+                      len(images), count_parameters(model), time.perf_counter() - t0, selected, started)
     save_weights(model, card, out)
     return card
 
