@@ -53,7 +53,8 @@ def noisy_window(scans, config):
     rng = np.random.default_rng(int(t * 10))
     rise = 2.0 if 40 <= t < 46 else 0.0
     return WindowResult([s.stamp for s in scans], pne=-3 + 0.3 * rng.standard_normal() + rise,
-                        cpv=0.004 * np.exp(0.4 * rng.standard_normal() + 2 * rise), n_planes=30, n_groups=8)
+                        cpv=0.004 * np.exp(0.4 * rng.standard_normal() + 2 * rise), n_planes=30, n_groups=8,
+                        rot_rate=abs(0.3 * rng.standard_normal()) + rise, trans_rate=abs(0.02 * rng.standard_normal()))
 
 
 def monitor_records(health):
@@ -67,11 +68,13 @@ def monitor_records(health):
     m.add_pose(100.0, np.eye(4))
     m.flush()
     return [{"start": r.stamps[0], "end": r.stamps[-1], "pne": r.pne, "cpv": r.cpv, "n_planes": r.n_planes,
-             "level": r.level, "message": r.message} for r in m.results]
+             "rot_rate": r.rot_rate, "trans_rate": r.trans_rate, "level": r.level, "message": r.message}
+            for r in m.results]
 
 
 @pytest.mark.parametrize("other", [HealthConfig(warn_sigma=3.0), HealthConfig(warn_sigma=9.0, error_sigma=12.0),
-                                   HealthConfig(baseline_windows=20, warn_persist=2)])
+                                   HealthConfig(baseline_windows=20, warn_persist=2),
+                                   HealthConfig(rot_rate_warn=0.5, trans_rate_warn=0.03, trans_rate_error=0.06)])
 def test_reassessing_recorded_windows_gives_what_the_monitor_gives(other):
     base = monitor_records(HealthConfig())
     again = reassess(base, other)
@@ -102,3 +105,25 @@ def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():
     assert choose_sigma(sweep, 0.5, margin_sigma=0.5)["warn_sigma"] == 3.5
     assert choose_sigma(sweep, 0.1, margin_sigma=0.0)["warn_sigma"] == 4.5  # 4.0 breaks the target above 3.0
     assert choose_sigma(sweep, 0.0, margin_sigma=1.0) is None
+
+
+def test_rate_margins_span_drift_free_maxima_and_the_weakest_episode():
+    from topometric_ros.alarms import rate_margins
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig
+
+    def recs(rot, trans):
+        return [{**r, "rot_rate": a, "trans_rate": b} for r, a, b in zip(records(["OK"] * len(rot)), rot, trans)]
+
+    free = (SimConfig(scene="garage", frames=10), recs([0.1, 0.3, 0.2], [0.01, 0.004, 0.02]), {}, None)
+    episode = {"episodes": [{"start": 1.5, "end": 3.0}]}  # its first windows: 1 and 2
+    r_bag = (SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0)),
+             recs([0.25, 0.6, 2.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1],
+                  [0.01, 0.05, 0.06] + [0.03] + [0.001] * 11), {}, episode)
+    t_bag = (SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0)),
+             recs([0.1, 0.1, 0.1], [0.0, 0.15, 0.18]), {}, episode)
+    m = rate_margins([free, r_bag, t_bag], within=2)
+    # drift-free: the free bag and the r bag's windows >= 10 s after its episode (0.1 °/s, 0.001 m/s)
+    assert m["rot_rate"]["drift_free_max"] == 0.3 and m["trans_rate"]["drift_free_max"] == 0.02
+    assert m["rot_rate"]["episode_min"] == 2.0 and m["rot_rate"]["episodes"] == 1  # only the r bag injects rotation
+    assert m["trans_rate"]["episode_min"] == 0.18 and m["trans_rate"]["episodes"] == 1

@@ -166,3 +166,32 @@ def test_cli_rejects_bad_arguments(tmp_path, capsys):
         main(["simulate", "--scene", "moon", "--out", str(tmp_path / "x")])
     assert main(["simulate", "--scene", "office1", "--drift", "q:1", "--out", str(tmp_path / "y")]) == 2
     assert "drift mode" in capsys.readouterr().err
+
+
+def test_heading_turns_at_a_bounded_smooth_rate_so_odometry_interpolates_well():
+    """Routes double back; the robot's heading must still turn at a physical rate, or poses interpolated from
+    20 Hz odometry at scan stamps are off by tens of degrees (drift alarms on drift-free bags)."""
+    from topometric_ros.sim.trajectory import MAX_YAW_RATE_DEG
+
+    worst = 0.0
+    for seed in range(3):
+        traj = random_trajectory(make_scene("office1"), 150.0, 1.2, 0.0, np.random.default_rng(seed))
+        yaw = np.unwrap(np.arctan2(traj.poses[:, 1, 0], traj.poses[:, 0, 0]))
+        rate = np.degrees(np.abs(np.diff(yaw))) / np.diff(traj.stamps)
+        assert rate.max() <= MAX_YAW_RATE_DEG * 1.001
+        odom_t = np.arange(0.013, 149.0, 0.05)  # 20 Hz odometry, offset from the scans as the writer does
+        scan_t = np.arange(0.5, 148.5, 0.2)
+        interp = geometry.interpolate_poses(odom_t, traj.poses_at(odom_t), scan_t)[0]
+        rel = np.linalg.inv(traj.poses_at(scan_t)) @ interp
+        ang = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        worst = max(worst, ang.max())
+    assert worst < 0.1  # degrees (it was up to 133 before the turn rate was bounded)
+
+
+def test_follow_heading_limits_the_rate_and_reaches_the_target():
+    from topometric_ros.sim.trajectory import follow_heading
+
+    wanted = np.r_[np.zeros(100), np.full(400, np.pi)]  # a U-turn asked for at once, 100 Hz
+    got = follow_heading(wanted, 0.01, max_rate_deg=90.0, smooth_s=0.0)
+    assert np.degrees(np.abs(np.diff(got))).max() == pytest.approx(0.9)  # 90 deg/s at 100 Hz
+    assert got[100 + 199] == pytest.approx(np.pi, abs=1e-9) and got[100 + 198] < np.pi  # 2 s for 180 deg

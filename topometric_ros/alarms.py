@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config, HealthConfig, flatten
-from .health import Health
-from .replay import ReplayOptions, replay
+from .health import RATES, Health
+from .replay import RECORD_FORMAT, ReplayOptions, replay
 from .sim.drift import DriftSpec
-from .sim.writer import SimConfig, load_truth, simulate
+from .sim.writer import SIM_VERSION, SimConfig, bag_identity, load_truth, simulate
 
 #: split -> groups of (floor-plan seeds the bags cycle through, first trajectory seed). Disjoint from each
 #: other and from the segmentation splits (layout 0 train/test seeds 0../1000.., unseen layout 7 seeds 0..).
@@ -77,8 +77,7 @@ def _name(sim: SimConfig) -> str:
 def _bag(sim: SimConfig, bags: Path, progress: bool) -> Path:
     """Simulate the bag unless an identical one is already there (truth.json carries the config)."""
     path = bags / _name(sim)
-    truth = load_truth(path)
-    if truth is not None and truth["config"] == {**asdict(sim), "drift": asdict(sim.drift)}:
+    if bag_identity(load_truth(path)) == {**asdict(sim), "drift": asdict(sim.drift), "simulator": SIM_VERSION}:
         return path
     if path.exists():
         shutil.rmtree(path)
@@ -110,7 +109,7 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
     copies with level and message replaced. Exactly what a replay with that health config gives."""
     h, out = Health(health), []
     for r in records:
-        res = _Window(r["pne"], r["cpv"], r["n_planes"])
+        res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan))
         h.assess(res)
         out.append({**r, "level": res.level, "message": res.message})
     return out
@@ -119,16 +118,18 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
 class _Window:
     """The fields of a WindowResult health.py reads."""
 
-    def __init__(self, pne: float, cpv: float, n_planes: int):
+    def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float):
         self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
+        self.rot_rate, self.trans_rate = float(rot_rate), float(trans_rate)
         self.level, self.message = "OK", ""
 
 
 def _same_run(saved: dict, config: Config) -> bool:
-    """A saved replay summary was made with ``config`` apart from its health section."""
+    """A saved replay summary was made with ``config`` apart from its health section, by a replay that writes
+    today's window records."""
     now = {k: v for k, v in flatten(config).items() if not k.startswith("health.")}
     was = {k: v for k, v in saved.get("config", {}).items() if not k.startswith("health.")}
-    return now == was and not saved.get("error")
+    return now == was and not saved.get("error") and saved.get("record_format") == RECORD_FORMAT
 
 
 def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) -> tuple[list[dict], dict]:
@@ -138,12 +139,12 @@ def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) ->
     saved = target / "windows.json"
     if saved.exists():
         doc = json.loads(saved.read_text())
-        if _same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == load_truth(path)["config"]:
+        if _same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path)):
             return reassess(doc["windows"], config.health), doc["summary"]
     res = replay(path, target, config, ReplayOptions(progress=progress, plot=True))
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
-    res.summary["bag_truth"] = load_truth(path)["config"]
+    res.summary["bag_truth"] = bag_identity(load_truth(path))
     doc = json.loads(saved.read_text())
     doc["summary"]["bag_truth"] = res.summary["bag_truth"]
     saved.write_text(json.dumps(doc, indent=1))
@@ -217,6 +218,30 @@ def run_detection(out: str | Path, config: Config, scenes: list[str], frames: in
     return table
 
 
+def rate_margins(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: int) -> dict:
+    """How far the drift rates keep drift-free windows from drifting ones (what the rate limits sit between):
+    per rate, the largest value of a drift-free window (drift-free bags and clean stretches) and, per episode,
+    the largest of its first ``within`` windows, of which the smallest over episodes is reported."""
+    free, first = {r: [] for r in RATES}, {r: [] for r in RATES}
+    for sim, windows, _, truth in runs:
+        calm = windows if sim.drift.mode == "none" else clean_windows(windows, truth["episodes"])
+        ends = np.array([w["end"] for w in windows])
+        for rate in RATES:
+            free[rate] += [w.get(rate, np.nan) for w in calm]
+            if sim.drift.mode == "none":
+                continue
+            if not (sim.drift.rotation if rate == "rot_rate" else sim.drift.translation):
+                continue  # only the drift an episode injects counts for its rate
+            for ep in truth["episodes"]:
+                k = int(np.searchsorted(ends, ep["start"], side="right"))
+                if k < len(windows):
+                    first[rate].append(np.nanmax([w.get(rate, np.nan) for w in windows[k:k + within]]))
+    return {rate: {"drift_free_max": float(np.nanmax(free[rate])) if np.any(np.isfinite(free[rate])) else None,
+                   "drift_free_windows": int(np.isfinite(free[rate]).sum()),
+                   "episode_min": float(np.min(first[rate])) if first[rate] else None, "episodes": len(first[rate])}
+            for rate in RATES}
+
+
 def choose_sigma(sweep: list[dict], target_per_10min: float, margin_sigma: float = 0.25) -> dict | None:
     """The sweep row of the smallest warn_sigma whose false WARN rate meets the target, and so does every
     sigma from ``margin_sigma`` below it up (false alarms rise steeply below a cliff; a threshold right on
@@ -255,7 +280,7 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
                       "free_bag_false_warns": table["drift_free"]["false_warn_windows"],
                       "free_bag_minutes": table["drift_free"]["minutes"]})
     chosen = choose_sigma(sweep, target_per_10min, margin_sigma)
-    doc = {"split": "calibration", "bags_from": split_description("calibration"),
+    doc = {"split": "calibration", "bags_from": split_description("calibration"), "rates": rate_margins(runs, within),
            "target_false_warns_per_10min": target_per_10min, "margin_sigma": margin_sigma, "within_windows": within,
            "health": asdict(config.health), "sweep": sweep, "chosen": chosen}
     _write_calibration(out, doc)
@@ -297,6 +322,14 @@ def format_calibration(doc: dict) -> str:
                      f"{r['false_warns_per_10min']:>10.2f}")
     c = doc["chosen"]
     minutes = doc["sweep"][0]["minutes"] if doc["sweep"] else 0.0
+    lines.append("")
+    for rate, (meaning, unit) in RATES.items():
+        m, lim = doc.get("rates", {}).get(rate), doc["health"].get(f"{rate}_warn")
+        if m and m["drift_free_max"] is not None:
+            lines.append(f"{meaning} rate: drift-free windows max {m['drift_free_max']:.3g} {unit} "
+                         f"({m['drift_free_windows']} windows), WARN limit {lim:g} {unit}, episodes of that drift "
+                         f"at least {m['episode_min']:.3g} {unit} in their first {doc['within_windows']} windows "
+                         f"({m['episodes']} episodes)")
     lines.append("")
     lines.append(f"calibration split ({doc['bags_from']}; {minutes:.1f} min "
                  f"drift-free incl. clean stretches of drift bags): " + (f"warn_sigma {c['warn_sigma']:g} is the smallest with <= "

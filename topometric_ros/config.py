@@ -105,6 +105,10 @@ class HealthConfig:
     pne_error: float = 0.0  # nats, absolute PNE limit -> ERROR (0 = off)
     cpv_warn: float = 0.0  # m², absolute CPV limit -> WARN (0 = off)
     cpv_error: float = 0.0  # m², absolute CPV limit -> ERROR (0 = off)
+    rot_rate_warn: float = 0.8  # deg/s, drift rate of plane normals -> WARN at once (0 = off; drift-free calibration max 0.31)
+    rot_rate_error: float = 1.5  # deg/s -> ERROR (0 = off)
+    trans_rate_warn: float = 0.05  # m/s, drift rate of plane offsets -> WARN at once (0 = off; drift-free calibration max 0.017)
+    trans_rate_error: float = 0.1  # m/s -> ERROR (0 = off)
     min_planes: int = 3  # fewer planes than this in a window -> WARN (metrics unreliable)
 
 

@@ -11,6 +11,10 @@ The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_si
 z at or above warn_sigma: drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
 calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
 (config, in metric units, 0 = off) apply at once, from the first window.
+The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s from the normals, m/s from the offsets)
+are physical rates, the same at every site, so they need no baseline: their absolute limits
+(``rot_rate_*``, ``trans_rate_*``) act at once, from the first window. They carry most detections; the
+sigma alarms catch inconsistency without a trend (pose noise, jumps).
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
 
@@ -32,6 +36,8 @@ RANK = {name: i for i, name in enumerate(LEVELS)}
 #: metric -> (what its rise means, unit). PNE rises with rotation error only; CPV with translation error and
 #: with rotation error (a rotated scan shifts its distant planes), so its alarm names both.
 METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation/rotation drift", "m²")}
+#: drift rate -> (what it means, unit): compared with absolute limits only.
+RATES = {"rot_rate": ("rotation drift", "°/s"), "trans_rate": ("translation drift", "m/s")}
 STATUS_NAME = "topometric: map consistency"
 MAD_TO_SIGMA = 1.4826
 CPV_TINY = 1e-12  # m², CPV below this is taken as this on the log scale
@@ -118,6 +124,17 @@ class Health:
             elif base and z[metric] >= c.warn_sigma:
                 reasons.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
                                f"{sum(self._high)} of {c.warn_persist} windows needed")
+        for rate, (meaning, unit) in RATES.items():
+            value = float(getattr(result, rate, float("nan")))
+            lim_warn, lim_err = getattr(c, f"{rate}_warn"), getattr(c, f"{rate}_error")
+            if not np.isfinite(value):
+                continue  # no co-plane group: already reported as CPV undefined
+            if lim_err != 0 and value >= lim_err:
+                level = _worse(level, "ERROR")
+                reasons.append(f"{meaning}: {value:.3g} {unit} (limit {lim_err:g})")
+            elif lim_warn != 0 and value >= lim_warn:
+                level = _worse(level, "WARN")
+                reasons.append(f"{meaning}: {value:.3g} {unit} (limit {lim_warn:g})")
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
             reasons.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
@@ -183,6 +200,8 @@ def window_values(result: Any, counters: Mapping[str, int] | None = None,
                   extra: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The KeyValue strings of one window's status (DESIGN.md's list, then the monitor's counters)."""
     values = {"pne": result.pne, "cpv": result.cpv}
+    for name in ("rpe_estimate", *RATES):
+        values[name] = getattr(result, name, float("nan"))
     for name in ("mme", "mpv", "mom"):
         if getattr(result, name, None) is not None:
             values[name] = getattr(result, name)

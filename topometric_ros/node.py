@@ -55,7 +55,9 @@ RANGES = {
     "health.warn_persist": (1, 1000), "health.persist_windows": (1, 1000),
     "health.pne_min_sigma": (0.0, 100.0), "health.cpv_min_sigma": (0.0, 100.0),
     "health.pne_warn": (-1e3, 1e3), "health.pne_error": (-1e3, 1e3),
-    "health.cpv_warn": (0.0, 1e6), "health.cpv_error": (0.0, 1e6), "health.min_planes": (0, 1_000_000),
+    "health.cpv_warn": (0.0, 1e6), "health.cpv_error": (0.0, 1e6),
+    "health.rot_rate_warn": (0.0, 360.0), "health.rot_rate_error": (0.0, 360.0),
+    "health.trans_rate_warn": (0.0, 100.0), "health.trans_rate_error": (0.0, 100.0), "health.min_planes": (0, 1_000_000),
 }
 QOS_CHOICES = ("sensor_data", "reliable")
 

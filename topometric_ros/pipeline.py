@@ -15,6 +15,7 @@ from . import classes as C
 from . import geometry, planes as planes_mod
 from .config import Config
 from .metrics import cpv as cpv_mod
+from .metrics import drift_rate as drift_mod
 from .metrics import pne as pne_mod
 from .planes import Plane
 from .window import Frame
@@ -57,8 +58,10 @@ class ProcessedScan:
 class WindowResult:
     """Scores of one window. pne (nats), cpv (m²); mme, mpv, mom when baselines are on (else None).
 
+    rot_rate (deg/s) and trans_rate (m/s): the drift rates the co-plane groups show (metrics/drift_rate.py);
+    rpe_estimate: the RPE (Eq. 4) those rates give over the window's consecutive scans.
     n_planes: planes in the window; n_groups: CPV co-plane groups; n_clusters: PNE normal clusters.
-    pne / cpv are NaN when the window has no normal cluster / co-plane group. timings: ms per metric.
+    pne / cpv / rates are NaN when the window has no normal cluster / co-plane group. timings: ms per metric.
 
     level / message are filled by health.py (OK, WARN, ERROR, STALE)."""
 
@@ -68,6 +71,9 @@ class WindowResult:
     n_planes: int
     n_groups: int
     n_clusters: int = 0
+    rot_rate: float = float("nan")
+    trans_rate: float = float("nan")
+    rpe_estimate: float = float("nan")
     mme: float | None = None
     mpv: float | None = None
     mom: float | None = None
@@ -219,9 +225,21 @@ def window_planes(scans: Sequence[ProcessedScan], poses: np.ndarray) -> WindowPl
                         r @ scatters @ np.swapaxes(r, 1, 2), counts)
 
 
-def plane_metrics(wp: WindowPlanes, config: Config, timings: dict[str, float] | None = None
-                  ) -> tuple[float, float, int, int]:
-    """(pne, cpv, n_clusters, n_groups) of window-frame planes with the thresholds of config.metrics."""
+@dataclass
+class PlaneScores:
+    """What the window's planes give: pne (nats), cpv (m²), drift rates (deg/s, m/s), counts."""
+
+    pne: float
+    cpv: float
+    rot_rate: float
+    trans_rate: float
+    n_clusters: int
+    n_groups: int
+
+
+def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None) -> PlaneScores:
+    """PNE, CPV and the drift rates of window-frame planes (``times``: (K,) s of the window's scans) with the
+    thresholds of config.metrics."""
     m = config.metrics
     timer = _Timer(timings if timings is not None else {})
     with timer("pne"):
@@ -231,13 +249,15 @@ def plane_metrics(wp: WindowPlanes, config: Config, timings: dict[str, float] | 
         groups = cpv_mod.coplane_groups(wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts,
                                         m.cpv_angle_deg, m.cpv_epsilon)
         cpv = cpv_mod.cpv_of_groups(groups)
-    return pne, cpv, len(clusters), len(groups)
+    with timer("rates"):
+        rot, trans = drift_mod.drift_rates(groups, wp.scans, wp.normals, wp.means, wp.counts, times)
+    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups))
 
 
 def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult:
     """PNE and CPV (and baselines when enabled) of already processed scans, in the first scan's frame.
 
-    Timings in ms under 'transform', 'pne', 'cpv' (and 'mme', 'mpv', 'mom'), and 'total'."""
+    Timings in ms under 'transform', 'pne', 'cpv', 'rates' (and 'mme', 'mpv', 'mom'), and 'total'."""
     if not scans:
         raise ValueError("a window needs at least one scan")
     timings: dict[str, float] = {}
@@ -246,9 +266,11 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     poses = geometry.relative_to_first(np.stack([s.pose for s in scans]))
     with timer("transform"):
         wp = window_planes(scans, poses)
-    pne, cpv, n_clusters, n_groups = plane_metrics(wp, config, timings)
-    result = WindowResult(stamps=[s.stamp for s in scans], pne=pne, cpv=cpv, n_planes=len(wp.counts),
-                          n_groups=n_groups, n_clusters=n_clusters, timings=timings)
+    stamps = [s.stamp for s in scans]
+    ps = plane_metrics(wp, stamps, config, timings)
+    result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
+                          n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
+                          rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), timings=timings)
     if config.metrics.baselines:
         _baselines(result, scans, poses, config)
     timings["total"] = 1000.0 * (time.perf_counter() - start)

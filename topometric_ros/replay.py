@@ -3,7 +3,8 @@
 Outputs in the output folder: ``diagnostics.mcap`` (diagnostic_msgs/DiagnosticArray on /diagnostics,
 stamped in bag time; opens in Foxglove and ``ros2 bag``), ``windows.csv`` and ``windows.json`` (every
 window's metrics, timings, level, reason; the JSON also holds the summary and counters) and
-``metrics.png`` (PNE and CPV over time with alarm bands, RPE when the bag has ground truth).
+``metrics.png`` (PNE, CPV, drift rates and the RPE estimate over time with alarm bands; the true RPE
+when the bag has ground truth).
 
 Rate ``max`` (default) is deterministic: every scan and every window is processed in order (the worker
 thread processes while the reader reads on; the reader waits, never drops). ``realtime``
@@ -24,11 +25,12 @@ import numpy as np
 
 from . import bag, geometry
 from .config import Config
-from .health import diagnostic_array, diagnostic_status, window_values
+from .health import RATES, diagnostic_array, diagnostic_status, window_values
 from .monitor import Monitor
 from .reports import write_csv
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
+RECORD_FORMAT = 2  # fields of a window record (windows.json); 2 added the drift rates and rpe_estimate
 
 
 @dataclass
@@ -133,11 +135,16 @@ class _Recorder:
         m = self.monitor_ref[0]
         a = m.health.last
         rec = {"index": len(self.records), "start": result.stamps[0], "end": result.stamps[-1],
-               "n_scans": len(scans), "pne": result.pne, "cpv": result.cpv}
+               "n_scans": len(scans), "pne": result.pne, "cpv": result.cpv, "rot_rate": result.rot_rate,
+               "trans_rate": result.trans_rate, "rpe_estimate": result.rpe_estimate}
         for name in ("mme", "mpv", "mom"):
             if getattr(result, name) is not None:
                 rec[name] = getattr(result, name)
         rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
+        limits = m.health.config
+        for rate in RATES:
+            rec[f"{rate}_warn_at"] = getattr(limits, f"{rate}_warn") or float("nan")
+            rec[f"{rate}_error_at"] = getattr(limits, f"{rate}_error") or float("nan")
         for metric in ("pne", "cpv"):
             rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
             rec[f"{metric}_warn_at"] = a.warn_at.get(metric, float("nan")) if a else float("nan")
@@ -284,7 +291,8 @@ def _summary(bag_path, monitor, records, n_scans, wall, first, last, error, note
     bag_s = (last - first) if first is not None else 0.0
     c = monitor.counters
     return {
-        "bag": str(bag_path), "mode": "deterministic" if speed is None else f"live x{speed:g}",
+        "bag": str(bag_path), "record_format": RECORD_FORMAT,
+        "mode": "deterministic" if speed is None else f"live x{speed:g}",
         "windows": len(records), "levels": {k: levels.count(k) for k in ("OK", "WARN", "ERROR")},
         "scans_read": n_scans, "scans_processed": c["scans_processed"], "wall_s": round(wall, 3),
         "bag_s": round(bag_s, 3), "scans_per_s": round(c["scans_processed"] / wall, 2) if wall > 0 else None,
@@ -323,15 +331,16 @@ LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
 
 
 def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> None:
-    """PNE and CPV (and RPE) per window over bag time, WARN/ERROR windows shaded, thresholds dashed,
-    simulated drift episodes (truth.json) hatched."""
+    """PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground truth) per
+    window over bag time, WARN/ERROR windows shaded, thresholds dashed, simulated drift episodes (truth.json)
+    hatched."""
     from .reports import pyplot
 
     plt = pyplot()
 
-    rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)")]
-    if any(np.isfinite(r.get("rpe", np.nan)) for r in records):
-        rows.append(("rpe", "RPE"))
+    rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)"), ("rot_rate", "rotation drift (°/s)"),
+            ("trans_rate", "translation drift (m/s)"), ("rpe_estimate", "RPE estimate")]
+    has_rpe = any(np.isfinite(r.get("rpe", np.nan)) for r in records)
     fig, axes = plt.subplots(len(rows), 1, figsize=(11, 2.6 * len(rows)), sharex=True, squeeze=False)
     t0 = records[0]["start"] if records else 0.0
     t = np.array([r["end"] - t0 for r in records])
@@ -342,8 +351,12 @@ def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> 
                 ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
         for ep in (truth or {}).get("episodes", []):
             ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
-        ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3)
-        if key in ("pne", "cpv"):
+        ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3, label=label)
+        if key == "rpe_estimate" and has_rpe:
+            ax.plot(t, [r.get("rpe", np.nan) for r in records], ".-", color="#4a7ab0", lw=1, ms=3,
+                    label="RPE (ground truth)")
+            ax.legend(loc="upper left", fontsize=8)
+        if records and f"{key}_warn_at" in records[0]:
             ax.plot(t, [r.get(f"{key}_warn_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["WARN"], lw=1)
             ax.plot(t, [r.get(f"{key}_error_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["ERROR"], lw=1)
         if key == "cpv" and any(r.get("cpv", 0) > 0 for r in records):
@@ -367,13 +380,15 @@ def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
     """The window table (alarms always shown; OK rows thinned beyond max_rows) and the summary lines."""
     t0 = records[0]["start"] if records else 0.0
     has_rpe = any("rpe" in r for r in records)
-    head = f"{'win':>4} {'t_end s':>8} {'PNE':>8} {'CPV':>10} {'planes':>6}" + (f" {'RPE':>7}" if has_rpe else "")
+    head = (f"{'win':>4} {'t_end s':>8} {'PNE':>8} {'CPV':>10} {'°/s':>6} {'m/s':>6} {'planes':>6}"
+            + (f" {'RPE':>7}" if has_rpe else ""))
     lines = [head + "  level  reason"]
     step = max(1, len(records) // max_rows)
     for i, r in enumerate(records):
         if r["level"] == "OK" and i % step:
             continue
-        row = f"{r['index']:>4} {r['end'] - t0:>8.1f} {r['pne']:>8.4f} {r['cpv']:>10.3g} {r['n_planes']:>6}"
+        row = (f"{r['index']:>4} {r['end'] - t0:>8.1f} {r['pne']:>8.4f} {r['cpv']:>10.3g} "
+               f"{r.get('rot_rate', float('nan')):>6.2f} {r.get('trans_rate', float('nan')):>6.3f} {r['n_planes']:>6}")
         if has_rpe:
             row += f" {r.get('rpe', float('nan')):>7.4f}"
         lines.append(f"{row}  {r['level']:<5}  {r['message']}")

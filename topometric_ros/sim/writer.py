@@ -22,6 +22,9 @@ from .scenes import make_scene
 from .trajectory import random_trajectory
 
 START_TIME = 1_700_000_000.0  # s, bag time of the first scan
+#: Version of what the simulator writes for a given SimConfig, kept in truth.json so caches of simulated bags
+#: notice a change. 2: the heading turns at a bounded rate (sim/trajectory.py MAX_YAW_RATE_DEG).
+SIM_VERSION = 2
 SENSOR_FRAME, BASE_FRAME, MAP_FRAME = "velodyne", "base_link", "map"
 
 
@@ -90,7 +93,7 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
             w.write("/odom", odom_t[j], bag.make_odometry(odom_t[j], est_odom[j], MAP_FRAME, BASE_FRAME))
             w.write("/odom_gt", odom_t[j], bag.make_odometry(odom_t[j], gt_odom[j], MAP_FRAME, BASE_FRAME))
     summary = {
-        "bag": str(out), "config": {**asdict(cfg), "drift": asdict(cfg.drift)},
+        "bag": str(out), "simulator": SIM_VERSION, "config": {**asdict(cfg), "drift": asdict(cfg.drift)},
         "scene_area_m2": round(scene.area, 1), "frames": cfg.frames, "duration_s": cfg.frames / cfg.rate,
         "path_length_m": float(np.linalg.norm(np.diff(sensor_poses[:, :3, 3], axis=0), axis=1).sum()),
         "mean_points_per_scan": float(np.mean(n_points)),
@@ -106,6 +109,12 @@ def load_truth(bag_path: str | Path) -> dict | None:
     """The truth.json a simulated bag carries, or None for other bags."""
     p = Path(bag_path) / "truth.json"
     return json.loads(p.read_text()) if p.exists() else None
+
+
+def bag_identity(truth: dict | None) -> dict | None:
+    """What makes a simulated bag what it is (its config and the simulator version), from its truth.json:
+    equal identities, equal bags."""
+    return None if truth is None else {**truth["config"], "simulator": truth.get("simulator", 1)}
 
 
 def simulate_split(scenes: list[str], out: str | Path, cfg: SimConfig, n_train: int = 2, n_test: int = 1,

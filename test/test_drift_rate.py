@@ -1,0 +1,162 @@
+"""Drift rates from co-plane groups: known rates recovered, invariances, robustness to a mis-joined group,
+unobservable directions, RPE estimate, and the rate alarms on a simulated drift bag."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from topometric_ros import geometry
+from topometric_ros.config import Config, HealthConfig
+from topometric_ros.health import Health
+from topometric_ros.metrics import cpv as cpv_mod
+from topometric_ros.metrics import drift_rate as dr
+from topometric_ros.metrics.rpe import rpe
+from topometric_ros.pipeline import WindowResult
+
+#: Physical planes of a room (unit normal, offset d in n·x + d = 0, a point count): floor, ceiling, four walls,
+#: an oblique ramp.
+ROOM = [((0, 0, 1), 1.0, 4000), ((0, 0, -1), 2.0, 1500), ((1, 0, 0), 4.0, 2500), ((-1, 0, 0), 5.0, 2000),
+        ((0, 1, 0), 3.0, 1800), ((0, -1, 0), 6.0, 900), ((0.6, 0, 0.8), 7.0, 600)]
+TIMES = np.arange(5) * 0.2  # s, five scans at 5 Hz
+
+
+def window(omega_deg_s=(0, 0, 0), v_m_s=(0, 0, 0), planes=ROOM, times=TIMES, rng=None, noise=0.0):
+    """Window-frame plane arrays of ``planes`` seen by scans at ``times`` whose poses drift at angular rate
+    omega (deg/s) and linear rate v (m/s): scan i's error x -> R(ω t_i) x + v t_i."""
+    cls, scans, normals, means, counts = [], [], [], [], []
+    for i, t in enumerate(times):
+        rot = geometry.rotvec_to_matrix(np.radians(np.asarray(omega_deg_s, float)) * t)
+        for k, (n, d, c) in enumerate(planes):
+            n = np.asarray(n, float) / np.linalg.norm(n)
+            foot = -d * n + (rng.normal(0, 1.0, 3) * (1 - np.abs(n)) if rng is not None else 0.0)
+            mean = rot @ foot + np.asarray(v_m_s, float) * t
+            nn = rot @ n
+            if noise:
+                nn = nn + rng.normal(0, noise, 3)
+                nn /= np.linalg.norm(nn)
+                mean = mean + nn * rng.normal(0, noise)
+            cls.append(k % 3)  # same class inside a physical plane
+            scans.append(i), normals.append(nn), means.append(mean), counts.append(c)
+    cls, scans, normals, means, counts = map(np.asarray, (cls, scans, normals, means, counts))
+    # points spread 1 m² in the plane, 1 mm thick: the scatter Σ (x − mean)(x − mean)ᵀ of a planar patch
+    shape = np.eye(3)[None] - np.einsum("mi,mj->mij", normals, normals) * (1 - 1e-6)
+    scatters = shape * counts[:, None, None]
+    return cls, scans, normals, means, scatters, counts.astype(float)
+
+
+def rates(cls, scans, normals, means, scatters, counts, times=TIMES):
+    groups = cpv_mod.coplane_groups(cls, scans, normals, means, scatters, counts)
+    return dr.drift_rates(groups, scans, normals, means, counts, times)
+
+
+@pytest.mark.parametrize("omega, v", [((0, 0, 2.0), (0.2, 0, 0)), ((1.0, -1.5, 0.5), (0, 0.1, -0.05)),
+                                      ((0, 0, 0), (0.3, 0.3, 0)), ((4.0, 0, 0), (0, 0, 0))])
+def test_known_drift_rates_are_recovered(omega, v):
+    rot, trans = rates(*window(omega, v))
+    assert rot == pytest.approx(np.linalg.norm(omega), rel=0.02, abs=1e-6)
+    assert trans == pytest.approx(np.linalg.norm(v), rel=0.05, abs=1e-4)
+
+
+def test_no_drift_gives_zero_and_a_constant_error_gives_no_rate():
+    assert rates(*window()) == pytest.approx((0.0, 0.0), abs=1e-9)
+    cls, scans, normals, means, scatters, counts = window()
+    pose = geometry.make_pose(geometry.rotvec_to_matrix([0.01, -0.02, 0.3]), [0.05, -0.1, 0.02])
+    moved = scans > 0  # every scan but the first is off by the same transform: a step, not a drift
+    normals[moved] = normals[moved] @ pose[:3, :3].T
+    means[moved] = means[moved] @ pose[:3, :3].T + pose[:3, 3]
+    rot, trans = rates(cls, scans, normals, means, scatters, counts)
+    assert rot < 0.5 * math.degrees(0.02) / 0.8 and trans < 0.5 * 0.1 / 0.8  # far below the same error as a trend
+
+
+def test_rates_do_not_change_when_the_whole_window_is_moved_rigidly(rng):
+    cls, scans, normals, means, scatters, counts = window((0.5, 1.0, 2.0), (0.1, -0.2, 0.05), rng=rng, noise=1e-3)
+    ref = rates(cls, scans, normals, means, scatters, counts)
+    pose = geometry.make_pose(geometry.rotvec_to_matrix([0.3, -1.2, 2.0]), [10.0, -4.0, 2.5])
+    r = pose[:3, :3]
+    got = rates(cls, scans, normals @ r.T, means @ r.T + pose[:3, 3], r @ scatters @ r.T, counts)
+    assert got == pytest.approx(ref, rel=1e-6, abs=1e-9)
+    assert rates(cls, scans, normals, means, scatters, counts, TIMES + 1234.5) == pytest.approx(ref, rel=1e-9)
+
+
+def test_rates_grow_with_the_drift():
+    rot = [rates(*window((0, 0, w), (0, 0, 0)))[0] for w in (0.5, 1, 2, 4)]
+    trans = [rates(*window((0, 0, 0), (v, 0, 0)))[1] for v in (0.05, 0.1, 0.2, 0.4)]
+    assert np.all(np.diff(rot) > 0) and np.all(np.diff(trans) > 0)
+
+
+def test_a_group_that_joins_two_surfaces_does_not_fake_a_drift():
+    """A wall and a recess 0.12 m behind it, seen in scans 0-2 and 3-4 as 'one plane': a step inside one
+    group. Plain least squares reads it as drift; the robust fit keeps the other six planes' verdict."""
+    cls, scans, normals, means, scatters, counts = window()
+    wall = (cls == 2 % 3) & (np.abs(normals[:, 0] - 1.0) < 1e-9) & (scans >= 3)
+    means[wall] -= 0.12 * normals[wall]
+    counts[wall] *= 5  # and the recess is the bigger surface
+    rot, trans = rates(cls, scans, normals, means, scatters, counts)
+    assert trans < 0.005 and rot < 0.05
+    groups = cpv_mod.coplane_groups(cls, scans, normals, means, scatters, counts)
+    assert any(len(set(scans[g.members])) == 5 and wall[g.members].any() for g in groups)  # it WAS joined
+
+
+def test_directions_no_plane_constrains_give_no_rate():
+    floor_only = [ROOM[0]]
+    assert rates(*window((0, 0, 0), (0.3, 0.2, 0), planes=floor_only))[1] == pytest.approx(0.0, abs=1e-9)
+    assert rates(*window((0, 0, 0), (0.3, 0.2, 0.1), planes=floor_only))[1] == pytest.approx(0.1, rel=0.01)
+    assert rates(*window((0, 0, 3.0), (0, 0, 0), planes=floor_only))[0] == pytest.approx(0.0, abs=1e-6)  # yaw
+
+
+def test_no_group_gives_nan():
+    rot, trans = dr.drift_rates([], np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), TIMES)
+    assert math.isnan(rot) and math.isnan(trans)
+    assert math.isnan(dr.rpe_estimate(rot, trans, TIMES))
+
+
+def test_rpe_estimate_matches_the_rpe_of_poses_drifting_at_those_rates():
+    omega, v = np.radians([0.0, 1.0, 2.0]), np.array([0.1, -0.15, 0.05])
+    gt = np.stack([geometry.make_pose(geometry.rotvec_to_matrix([0, 0, 0.3 * t]), [1.2 * t, 0, 0]) for t in TIMES])
+    err = np.stack([geometry.make_pose(geometry.rotvec_to_matrix(omega * t), v * t) for t in TIMES])
+    est = err @ gt
+    got = dr.rpe_estimate(math.degrees(np.linalg.norm(omega)), np.linalg.norm(v), TIMES)
+    assert got == pytest.approx(rpe(gt, est), rel=0.1)  # the small-error form leaves out the lever arm
+
+
+def test_rate_limits_raise_at_once_and_name_the_drift():
+    h = Health(HealthConfig(rot_rate_warn=0.8, rot_rate_error=1.5, trans_rate_warn=0.05, trans_rate_error=0.1))
+
+    def assess(rot, trans):
+        r = WindowResult([0.0, 0.8], pne=-9.0, cpv=1e-5, n_planes=40, n_groups=10, rot_rate=rot, trans_rate=trans)
+        h.assess(r)
+        return r
+
+    assert assess(0.2, 0.01).level == "OK"  # learning the baseline, and the rates are fine
+    r = assess(1.0, 0.01)
+    assert r.level == "WARN" and "rotation drift: 1 °/s (limit 0.8)" in r.message
+    r = assess(0.1, 0.2)
+    assert r.level == "ERROR" and "translation drift: 0.2 m/s (limit 0.1)" in r.message
+    assert assess(float("nan"), float("nan")).level == "OK"  # no group: no rate (CPV reports that)
+    off = Health(HealthConfig(rot_rate_warn=0, rot_rate_error=0, trans_rate_warn=0, trans_rate_error=0))
+    r = WindowResult([0.0, 0.8], pne=-9.0, cpv=1e-5, n_planes=40, n_groups=10, rot_rate=50.0, trans_rate=5.0)
+    assert off.assess(r).level == "OK"
+
+
+def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_path):
+    """Labels from the bag, a t×1 episode (0.2 m/s): windows inside it read ≈ 0.2 m/s, windows before it
+    stay far below the WARN limit, and the RPE estimate follows the true RPE."""
+    from topometric_ros.config import load_config
+    from topometric_ros.replay import ReplayOptions, replay
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig, load_truth, simulate
+
+    bag = tmp_path / "t1"
+    simulate(SimConfig(scene="office1", frames=160, rate=5.0, seed=21, drift=DriftSpec("t", 1.0)), bag, progress=False)
+    res = replay(bag, tmp_path / "out", load_config(overrides={"segmentation.mode": "labels"}),
+                 ReplayOptions(progress=False, plot=False))
+    ep = load_truth(bag)["episodes"][0]
+    inside = [r for r in res.windows if r["start"] > ep["start"] + 0.1 and r["end"] < ep["end"]]
+    before = [r for r in res.windows if r["end"] < ep["start"]]
+    assert inside and before
+    assert np.median([r["trans_rate"] for r in inside]) == pytest.approx(0.2, rel=0.1)
+    assert max(r["trans_rate"] for r in before) < Config().health.trans_rate_warn / 2
+    assert all(r["level"] in ("WARN", "ERROR") for r in inside)
+    assert np.median([r["rpe_estimate"] / r["rpe"] for r in inside]) == pytest.approx(1.0, rel=0.15)
