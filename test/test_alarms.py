@@ -18,7 +18,7 @@ def test_calibration_and_evaluation_bags_are_disjoint():
     assert len(cal) == len(SPLITS["calibration"]) * (9 + 5) and len(ev) == 9 + 5
     assert {(s.layout_seed, s.seed) for s in cal}.isdisjoint({(s.layout_seed, s.seed) for s in ev})
     assert {s.layout_seed for s in cal}.isdisjoint({s.layout_seed for s in ev})  # different floor plans too
-    assert len({s.layout_seed for s in ev}) == 4 and len({s.layout_seed for s in cal}) == 2
+    assert len({s.layout_seed for s in ev}) == 4 and len({s.layout_seed for s in cal}) == 6
     assert sorted({(s.drift.mode, s.drift.scale) for s in ev if s.drift.mode != "none"}) == sorted(
         (m, k) for m in ("r", "t", "rt") for k in (1.0, 1.5, 2.0))
     default = plan_bags(scenes, 400, 5, 750, split="evaluation")  # `topometric alarms` defaults
@@ -127,3 +127,14 @@ def test_rate_margins_span_drift_free_maxima_and_the_weakest_episode():
     assert m["rot_rate"]["drift_free_max"] == 0.3 and m["trans_rate"]["drift_free_max"] == 0.02
     assert m["rot_rate"]["episode_min"] == 2.0 and m["rot_rate"]["episodes"] == 1  # only the r bag injects rotation
     assert m["trans_rate"]["episode_min"] == 0.18 and m["trans_rate"]["episodes"] == 1
+
+
+def test_choose_sigma_can_hold_every_group_to_the_target():
+    from topometric_ros.alarms import choose_sigma
+
+    pooled = {3.0: 0.3, 3.5: 0.2, 4.0: 0.0, 4.5: 0.0}
+    worst = {3.0: 1.2, 3.5: 0.9, 4.0: 0.0, 4.5: 0.0}  # one floor plan's false alarms hidden in the pool
+    sweep = [{"warn_sigma": s, "false_warns_per_10min": pooled[s], "worst_group_false_warns_per_10min": worst[s]}
+             for s in pooled]
+    assert choose_sigma(sweep, 0.5, margin_sigma=0.0)["warn_sigma"] == 3.5  # (the grid's first can't be checked)
+    assert choose_sigma(sweep, 0.5, margin_sigma=0.0, key="worst_group_false_warns_per_10min")["warn_sigma"] == 4.0

@@ -95,7 +95,7 @@ class HealthConfig:
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
-    warn_sigma: float = 5.0  # robust z above the baseline median -> WARN (calibrated with warn_persist 2: `topometric alarms --calibrate`, floor plans 7+9)
+    warn_sigma: float = 6.0  # robust z above the baseline median -> WARN (`topometric alarms --calibrate`: every calibration group, floor plans 7, 9, 11-14)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
     warn_persist: int = 2  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
     persist_windows: int = 2  # windows the persistence rule looks back over (this one included)
@@ -105,9 +105,9 @@ class HealthConfig:
     pne_error: float = 0.0  # nats, absolute PNE limit -> ERROR (0 = off)
     cpv_warn: float = 0.0  # m², absolute CPV limit -> WARN (0 = off)
     cpv_error: float = 0.0  # m², absolute CPV limit -> ERROR (0 = off)
-    rot_rate_warn: float = 0.8  # deg/s, drift rate of plane normals -> WARN at once (0 = off; drift-free calibration max 0.31)
+    rot_rate_warn: float = 1.2  # deg/s, drift rate of plane normals -> WARN at once (0 = off; calibration split: drift-free max 0.89)
     rot_rate_error: float = 1.5  # deg/s -> ERROR (0 = off)
-    trans_rate_warn: float = 0.05  # m/s, drift rate of plane offsets -> WARN at once (0 = off; drift-free calibration max 0.017)
+    trans_rate_warn: float = 0.05  # m/s, drift rate of plane offsets -> WARN at once (0 = off; calibration split: drift-free max 0.018)
     trans_rate_error: float = 0.1  # m/s -> ERROR (0 = off)
     min_planes: int = 3  # fewer planes than this in a window -> WARN (metrics unreliable)
 

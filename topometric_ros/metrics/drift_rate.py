@@ -32,6 +32,7 @@ TUKEY_C = 4.685  # Tukey biweight cut-off in robust scale units (95 % efficiency
 OFFSET_SCALE_FLOOR = 0.005  # m, smallest robust scale of offset residuals (sub-cm plane fits)
 NORMAL_SCALE_FLOOR = np.radians(0.2)  # rad, smallest robust scale of normal residuals
 ITERATIONS = 8
+TOLERANCE = 1e-6  # rad/s or m/s: a change of the rate this small ends the iterations
 
 
 def _skew(n: np.ndarray) -> np.ndarray:
@@ -50,13 +51,14 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     counts, times, scans = np.asarray(counts, np.float64), np.asarray(times, np.float64), np.asarray(scans)
     members = np.concatenate([g.members for g in groups])
     group = np.repeat(np.arange(len(groups)), [len(g.members) for g in groups])
+    onehot = np.eye(len(groups))[group]
     t, w = times[scans[members]], np.sqrt(counts[members])
     n = np.stack([_mean_direction(normals[g.members], np.sqrt(counts[g.members])) for g in groups])[group]
     offsets = -np.einsum("ij,ij->i", means[members], n)[:, None]
     # offsets: d_k = a_g − t_k n_g·v;  normals: n_k = c_g − t_k [n_g]× ω  (a_g, c_g per group)
-    v = _robust_rate(-t[:, None, None] * n[:, None, :], offsets, group, w, OFFSET_SCALE_FLOOR)
+    v = _robust_rate(-t[:, None, None] * n[:, None, :], offsets, onehot, w, OFFSET_SCALE_FLOOR)
     skews = np.stack([_skew(x) for x in n])
-    omega = _robust_rate(-t[:, None, None] * skews, normals[members], group, w, NORMAL_SCALE_FLOOR)
+    omega = _robust_rate(-t[:, None, None] * skews, normals[members], onehot, w, NORMAL_SCALE_FLOOR)
     return float(np.degrees(np.linalg.norm(omega))), float(np.linalg.norm(v))
 
 
@@ -70,7 +72,7 @@ def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight:
                  scale_floor: float) -> np.ndarray:
     """The rate x (3,) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust fit, so that one
     group joining two different surfaces (a step inside the group, not a trend) is rejected instead of
-    bending the rate. design (M, R, 3), obs (M, R), weight (M,) prior weights.
+    bending the rate. design (M, R, 3), obs (M, R), group (M, G) one-hot membership, weight (M,) prior weights.
 
     Iteratively reweighted least squares (Tukey's biweight on each member's residual norm) from two starts,
     x = 0 (no drift: a step group stands out and is dropped) and plain least squares (a real drift, which
@@ -79,6 +81,8 @@ def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight:
     best, best_loss = np.zeros(3), np.inf
     for start in (np.zeros(3), _weighted_fit(design, obs, group, weight)):
         x = _irls(design, obs, group, weight, scale_floor, start)
+        if best_loss < np.inf and np.allclose(x, best, rtol=0, atol=TOLERANCE):
+            continue  # both starts led to the same rate
         loss = float(weight @ _tukey_loss(_residuals(design, obs, group, weight, x) / (TUKEY_C * scale_floor)))
         if loss < best_loss - 1e-12:
             best, best_loss = x, loss
@@ -92,7 +96,7 @@ def _irls(design, obs, group, weight, scale_floor, x):
         scale = max(1.4826 * float(np.median(res)), scale_floor)
         keep = weight * (1.0 - np.clip(res / (TUKEY_C * scale), 0.0, 1.0) ** 2) ** 2
         new_x = _weighted_fit(design, obs, group, keep)
-        if np.allclose(new_x, x, rtol=0, atol=1e-9):
+        if np.allclose(new_x, x, rtol=0, atol=TOLERANCE):
             return new_x
         x = new_x
     return x
@@ -118,13 +122,14 @@ def _weighted_fit(design, obs, group, weight) -> np.ndarray:
 
 
 def _centred(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray):
-    """design and obs minus their weighted means per group (removes the per-group intercepts)."""
-    total = np.bincount(group, weight)
-    safe = np.where(total > 0, total, 1.0)
-    mean_d = np.stack([np.stack([np.bincount(group, weight * design[:, r, c]) for c in range(3)], -1)
-                       for r in range(design.shape[1])], 1) / safe[:, None, None]
-    mean_o = np.stack([np.bincount(group, weight * obs[:, r]) for r in range(obs.shape[1])], -1) / safe[:, None]
-    return design - mean_d[group], obs - mean_o[group]
+    """design and obs minus their weighted means per group (removes the per-group intercepts); ``group`` is
+    the (M, G) one-hot membership matrix."""
+    m, r = obs.shape
+    both = np.concatenate([design.reshape(m, 3 * r), obs], axis=1)
+    total = group.T @ weight
+    means = (group.T @ (weight[:, None] * both)) / np.where(total > 0, total, 1.0)[:, None]
+    both = both - group @ means
+    return both[:, :3 * r].reshape(m, r, 3), both[:, 3 * r:]
 
 
 def rpe_estimate(rot_rate_deg_s: float, trans_rate_m_s: float, times) -> float:
