@@ -319,7 +319,10 @@ def _write_calibration(out: Path, doc: dict) -> None:
     fig, ax = plt.subplots(figsize=(7, 3.2))
     x = [r["warn_sigma"] for r in doc["sweep"]]
     ax.plot(x, [r["false_warns_per_10min"] for r in doc["sweep"]], "o-", color="#d03020", ms=3,
-            label="false WARN / 10 min (drift-free)")
+            label="false WARN / 10 min (drift-free, pooled)")
+    ax.plot(x, [r.get("worst_group_false_warns_per_10min", np.nan) for r in doc["sweep"]], "^--", color="#802010",
+            ms=3, label="worst calibration group (chooses)")
+    ax.set_yscale("symlog", linthresh=1.0)
     ax.axhline(doc["target_false_warns_per_10min"], color="#d03020", ls=":", lw=1, label="calibration target")
     ax2 = ax.twinx()
     ax2.plot(x, [r["detection_rate"] for r in doc["sweep"]], "s-", color="#4a7ab0", ms=3, label="detected")
