@@ -231,10 +231,8 @@ def rate_margins(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], wi
         ends = np.array([w["end"] for w in windows])
         for rate in RATES:
             free[rate] += [w.get(rate, np.nan) for w in calm]
-            if sim.drift.mode == "none":
-                continue
             if not (sim.drift.rotation if rate == "rot_rate" else sim.drift.translation):
-                continue  # only the drift an episode injects counts for its rate
+                continue  # only the drift an episode injects counts for its rate (none for drift-free bags)
             for ep in truth["episodes"]:
                 k = int(np.searchsorted(ends, ep["start"], side="right"))
                 if k < len(windows):
@@ -297,7 +295,7 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
         sweep.append({"warn_sigma": float(sigma), "detection_rate": table["detection_rate"],
                       "detected": table["detected"], "episodes": table["episodes"],
                       "false_warn_windows": fa, "minutes": minutes,
-                      "false_warns_per_10min": 10 * fa / minutes if minutes else float("nan"),
+                      "false_warns_per_10min": _false_rate(table),
                       "group_false_warns_per_10min": per_group, "worst_group_false_warns_per_10min": max(per_group),
                       "free_bag_false_warns": table["drift_free"]["false_warn_windows"],
                       "free_bag_minutes": table["drift_free"]["minutes"]})
