@@ -128,11 +128,11 @@ def follow_heading(yaw: np.ndarray, dt: float, max_rate_deg: float = MAX_YAW_RAT
                    smooth_s: float = YAW_SMOOTH_S) -> np.ndarray:
     """The heading (rad, unwrapped) a robot turning at most ``max_rate_deg`` deg/s gets when it follows the
     wanted heading ``yaw`` sampled every ``dt`` s, with its turn rate smoothed over ``smooth_s`` s."""
-    step = np.radians(max_rate_deg) * dt
-    out = np.empty_like(yaw)
-    out[0] = yaw[0]
-    for i in range(1, len(yaw)):
-        out[i] = out[i - 1] + np.clip(yaw[i] - out[i - 1], -step, step)
+    step = float(np.radians(max_rate_deg) * dt)
+    out, heading = np.empty_like(yaw), float(yaw[0])
+    for i, wanted in enumerate(yaw.tolist()):  # a rate limit is sequential; plain floats keep it fast
+        heading += min(max(wanted - heading, -step), step)
+        out[i] = heading
     return ndimage.gaussian_filter1d(out, smooth_s / dt, mode="nearest") if smooth_s > 0 else out
 
 
