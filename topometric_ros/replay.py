@@ -30,7 +30,7 @@ from .monitor import Monitor
 from .reports import write_csv
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
-RECORD_FORMAT = 2  # fields of a window record (windows.json); 2 added the drift rates and rpe_estimate
+RECORD_FORMAT = 3  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit
 
 
 @dataclass

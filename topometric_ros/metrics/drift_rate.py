@@ -1,23 +1,28 @@
 """Drift rates of a window from its co-plane groups: how fast the poses drift, in deg/s and m/s.
 
 A pose error that grows during the window (SLAM drifting) moves each physical plane from scan to scan.
-With scan i's error in the WINDOW frame x -> R_i x + p_i, R_i ≈ I + [ω t_i]×, p_i ≈ p_0 + v t_i (t_i in s
-since the window's first scan), a plane (n, d) becomes, to first order,
-    n_i ≈ n + t_i (ω × n),        d_i ≈ d − t_i (n · v).
-So inside a co-plane group (cpv.CoPlaneGroup: one physical plane seen by several scans) the members' normals
-and their offsets along the group normal (the members' mean normal) change linearly with time. One weighted least-squares fit over
-all groups, each group's own means removed, gives the angular rate ω (rad/s) from the normals and the linear
-rate v (m/s) from the offsets. Members weigh √(inlier count): many points make a precise plane, but a big
-floor must not hide every wall. Directions no group constrains (v along a direction no plane faces, ω about
-the only normal seen) stay zero (minimum-norm solution): the rates are the part of the drift planes can see.
+With scan i's error in the WINDOW frame x -> R_i x + p_i, R_i ≈ I + [ω t_i]×, p_i ≈ v t_i (t_i in s since
+the window's first scan, whose pose defines the frame, so R_0 = I, p_0 = 0), a patch of plane with unit
+normal n and centroid m moves to first order as
+    normal:  n_i ≈ n + t_i (ω × n)
+    offset along the group normal n̄:  −n̄·m_i ≈ d − (t_i − t̄) ω·(m_i × n̄) − t_i n̄·v,
+with n̄ the members' weighted mean normal (the plane's normal at their weighted mean time t̄).
+Inside a co-plane group (cpv.CoPlaneGroup: one physical plane seen by several scans) both change linearly
+with time. One weighted least-squares fit of the six rates (ω rad/s, v m/s) over all groups, each group's
+own means removed, uses both: normals see ω, offsets see v and, through the lever arm m × n̄ of patches
+away from the frame origin, ω too (without that term a rotation about the origin read as translation).
+Rows are scaled by their noise floors (offsets 5 mm, normals 0.2°) and members weigh √(inlier count): many
+points make a precise plane, but a big floor must not hide every wall. Directions no group constrains (v
+along a direction no plane faces, ω about the only normal seen) stay zero (minimum-norm solution): the
+rates are the part of the drift planes can see.
 
 Constant pose errors (a window shifted as a whole) give no rate; pose noise without a trend gives a small
 one. The rates are in physical units, so their alarm limits do not depend on the site. Valid while the
 drift stays inside the co-plane gates across the window (cpv: ε in offset, the angle gate in normals).
 
 ``rpe_estimate`` turns the rates into the paper's RPE (Eq. 4) over consecutive scan pairs, for small errors:
-‖E − I‖_F² = ‖ΔR − I‖_F² + |Δp|² ≈ 2 (|ω| Δt)² + (|v| Δt)², leaving out the lever arm of the rotation
-(ω Δt × the distance between the sensor and the window origin; a few % for a 1 s window).
+‖E − I‖_F² = ‖ΔR − I‖_F² + |Δp|² ≈ 2 (|ω| Δt)² + (|v| Δt)², with v the drift of the window origin (the
+first scan's sensor): a rotation drift about a sensor that has moved away from it shows a little v too.
 """
 from __future__ import annotations
 
@@ -29,10 +34,10 @@ from .cpv import CoPlaneGroup
 
 RCOND = 1e-3  # singular values below this fraction of the largest count as unconstrained directions
 TUKEY_C = 4.685  # Tukey biweight cut-off in robust scale units (95 % efficiency for Gaussian residuals)
-OFFSET_SCALE_FLOOR = 0.005  # m, smallest robust scale of offset residuals (sub-cm plane fits)
-NORMAL_SCALE_FLOOR = np.radians(0.2)  # rad, smallest robust scale of normal residuals
+OFFSET_SCALE_FLOOR = 0.005  # m, noise floor of plane offsets (sub-cm plane fits): the unit of offset rows
+NORMAL_SCALE_FLOOR = np.radians(0.2)  # rad, noise floor of plane normals: the unit of normal rows
 ITERATIONS = 8
-TOLERANCE = 1e-6  # rad/s or m/s: a change of the rate this small ends the iterations
+TOLERANCE = 1e-6  # rad/s or m/s: a change of the rates this small ends the iterations
 
 
 def _skew(n: np.ndarray) -> np.ndarray:
@@ -44,22 +49,28 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     """(rotation rate deg/s, translation rate m/s) of a window's co-plane groups.
 
     scans (M,) scan position of each plane, normals (M, 3) and means (M, 3, m) in the window frame, counts
-    (M,) inliers, times (K,) s of each scan position (any origin). NaN, NaN when there is no group."""
+    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0). NaN, NaN when
+    there is no group."""
     if not groups:
         return float("nan"), float("nan")
     normals, means = np.asarray(normals, np.float64).reshape(-1, 3), np.asarray(means, np.float64).reshape(-1, 3)
     counts, times, scans = np.asarray(counts, np.float64), np.asarray(times, np.float64), np.asarray(scans)
     members = np.concatenate([g.members for g in groups])
     group = np.repeat(np.arange(len(groups)), [len(g.members) for g in groups])
-    onehot = np.eye(len(groups))[group]
-    t, w = times[scans[members]], np.sqrt(counts[members])
+    t, w = times[scans[members]] - times.min(), np.sqrt(counts[members])
     n = np.stack([_mean_direction(normals[g.members], np.sqrt(counts[g.members])) for g in groups])[group]
-    offsets = -np.einsum("ij,ij->i", means[members], n)[:, None]
-    # offsets: d_k = a_g − t_k n_g·v;  normals: n_k = c_g − t_k [n_g]× ω  (a_g, c_g per group)
-    v = _robust_rate(-t[:, None, None] * n[:, None, :], offsets, onehot, w, OFFSET_SCALE_FLOOR)
-    skews = np.stack([_skew(x) for x in n])
-    omega = _robust_rate(-t[:, None, None] * skews, normals[members], onehot, w, NORMAL_SCALE_FLOOR)
-    return float(np.degrees(np.linalg.norm(omega))), float(np.linalg.norm(v))
+    m, onehot = means[members], np.eye(len(groups))[group]
+    # n̄ is the members' weighted mean normal, i.e. the plane's normal at their weighted mean time t̄: the lever
+    # arm of a patch at m then moves its offset along n̄ by −(t − t̄) ω·(m × n̄)
+    t_mean = (onehot.T @ (w * t)) / (onehot.T @ w)
+    design = np.zeros((len(members), 4, 6))  # rows: offset, normal x y z; columns: ω (3), v (3)
+    design[:, 0, :3] = -(t - t_mean[group])[:, None] * np.cross(m, n) / OFFSET_SCALE_FLOOR
+    design[:, 0, 3:] = -t[:, None] * n / OFFSET_SCALE_FLOOR
+    design[:, 1:, :3] = -t[:, None, None] * np.stack([_skew(x) for x in n]) / NORMAL_SCALE_FLOOR
+    obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
+                          normals[members] / NORMAL_SCALE_FLOOR], axis=1)
+    x = _robust_rate(design, obs, onehot, w)
+    return float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:]))
 
 
 def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -68,38 +79,39 @@ def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray,
-                 scale_floor: float) -> np.ndarray:
-    """The rate x (3,) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust fit, so that one
+def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """The rates x (P,) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust fit, so that one
     group joining two different surfaces (a step inside the group, not a trend) is rejected instead of
-    bending the rate. design (M, R, 3), obs (M, R), group (M, G) one-hot membership, weight (M,) prior weights.
+    bending the rates. design (M, R, P) and obs (M, R) in noise-floor units, group (M, G) one-hot
+    membership, weight (M,) prior weights.
 
     Iteratively reweighted least squares (Tukey's biweight on each member's residual norm) from two starts,
     x = 0 (no drift: a step group stands out and is dropped) and plain least squares (a real drift, which
     from x = 0 could look like outliers itself); the result that leaves the smaller Tukey loss at the noise
-    floor ``scale_floor`` wins."""
-    best, best_loss = np.zeros(3), np.inf
-    for start in (np.zeros(3), _weighted_fit(design, obs, group, weight)):
-        x = _irls(design, obs, group, weight, scale_floor, start)
+    floor (residual 1) wins, each judged with its own final weights."""
+    best, best_loss = np.zeros(design.shape[2]), np.inf
+    for start in (np.zeros(design.shape[2]), _weighted_fit(design, obs, group, weight)):
+        x, keep = _irls(design, obs, group, weight, start)
         if best_loss < np.inf and np.allclose(x, best, rtol=0, atol=TOLERANCE):
-            continue  # both starts led to the same rate
-        loss = float(weight @ _tukey_loss(_residuals(design, obs, group, weight, x) / (TUKEY_C * scale_floor)))
+            continue  # both starts led to the same rates
+        loss = float(weight @ _tukey_loss(_residuals(design, obs, group, keep, x) / TUKEY_C))
         if loss < best_loss - 1e-12:
             best, best_loss = x, loss
     return best
 
 
-def _irls(design, obs, group, weight, scale_floor, x):
+def _irls(design, obs, group, weight, x):
+    """(rates, final weights) of Tukey-biweight IRLS from ``x``; robust scale max(1.4826 MAD, 1 floor unit)."""
     keep = weight
     for _ in range(ITERATIONS):
         res = _residuals(design, obs, group, keep, x)
-        scale = max(1.4826 * float(np.median(res)), scale_floor)
+        scale = max(1.4826 * float(np.median(res)), 1.0)
         keep = weight * (1.0 - np.clip(res / (TUKEY_C * scale), 0.0, 1.0) ** 2) ** 2
         new_x = _weighted_fit(design, obs, group, keep)
         if np.allclose(new_x, x, rtol=0, atol=TOLERANCE):
-            return new_x
+            return new_x, keep
         x = new_x
-    return x
+    return x, keep
 
 
 def _tukey_loss(u: np.ndarray) -> np.ndarray:
@@ -117,19 +129,20 @@ def _weighted_fit(design, obs, group, weight) -> np.ndarray:
     """Weighted least-squares x with the per-group intercepts eliminated (minimum norm; zero without rows)."""
     a, b = _centred(design, obs, group, weight)
     sw = np.sqrt(weight)[:, None, None]
-    rows, rhs = (a * sw).reshape(-1, 3), (b * sw[..., 0]).reshape(-1)
-    return np.linalg.lstsq(rows, rhs, rcond=RCOND)[0] if np.any(rows) else np.zeros(3)
+    p = design.shape[2]
+    rows, rhs = (a * sw).reshape(-1, p), (b * sw[..., 0]).reshape(-1)
+    return np.linalg.lstsq(rows, rhs, rcond=RCOND)[0] if np.any(rows) else np.zeros(p)
 
 
 def _centred(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray):
     """design and obs minus their weighted means per group (removes the per-group intercepts); ``group`` is
     the (M, G) one-hot membership matrix."""
-    m, r = obs.shape
-    both = np.concatenate([design.reshape(m, 3 * r), obs], axis=1)
+    m, r, p = design.shape
+    both = np.concatenate([design.reshape(m, r * p), obs], axis=1)
     total = group.T @ weight
     means = (group.T @ (weight[:, None] * both)) / np.where(total > 0, total, 1.0)[:, None]
     both = both - group @ means
-    return both[:, :3 * r].reshape(m, r, 3), both[:, 3 * r:]
+    return both[:, :r * p].reshape(m, r, p), both[:, r * p:]
 
 
 def rpe_estimate(rot_rate_deg_s: float, trans_rate_m_s: float, times) -> float:
