@@ -138,3 +138,21 @@ def test_choose_sigma_can_hold_every_group_to_the_target():
              for s in pooled]
     assert choose_sigma(sweep, 0.5, margin_sigma=0.0)["warn_sigma"] == 3.5  # (the grid's first can't be checked)
     assert choose_sigma(sweep, 0.5, margin_sigma=0.0, key="worst_group_false_warns_per_10min")["warn_sigma"] == 4.0
+
+
+def test_network_replays_are_keyed_by_the_weights_file_contents(tmp_path):
+    import hashlib
+    import shutil
+
+    from topometric_ros.alarms import _weights_digest
+    from topometric_ros.segmentation.infer import SHIPPED
+
+    assert _weights_digest(load_config(overrides={"segmentation.mode": "labels"})) is None
+    shipped = _weights_digest(load_config(overrides={"segmentation.mode": "network"}))
+    assert shipped == hashlib.sha256(SHIPPED.read_bytes()).hexdigest()
+    other = tmp_path / "rangenet.pt"
+    shutil.copy(SHIPPED, other)
+    with open(other, "ab") as f:
+        f.write(b"\0")  # other bytes, other key (a cached replay with the old weights is not reused)
+    assert _weights_digest(load_config(overrides={"segmentation.mode": "network",
+                                                  "segmentation.weights": str(other)})) != shipped

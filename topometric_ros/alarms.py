@@ -142,16 +142,30 @@ def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) ->
     saved = target / "windows.json"
     if saved.exists():
         doc = json.loads(saved.read_text())
-        if _same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path)):
+        if (_same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path))
+                and doc["summary"].get("weights") == _weights_digest(config)):
             return reassess(doc["windows"], config.health), doc["summary"]
     res = replay(path, target, config, ReplayOptions(progress=progress, plot=True))
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
     res.summary["bag_truth"] = bag_identity(load_truth(path))
+    res.summary["weights"] = _weights_digest(config)
     doc = json.loads(saved.read_text())
-    doc["summary"]["bag_truth"] = res.summary["bag_truth"]
+    doc["summary"].update(bag_truth=res.summary["bag_truth"], weights=res.summary["weights"])
     saved.write_text(json.dumps(doc, indent=1))
     return res.windows, res.summary
+
+
+def _weights_digest(config: Config) -> str | None:
+    """sha256 of the segmentation weights a network replay used (the config names "" for the shipped file,
+    whatever it holds), None without the network."""
+    if config.segmentation.mode != "network":
+        return None
+    import hashlib
+
+    from .segmentation.infer import SHIPPED
+
+    return hashlib.sha256(Path(config.segmentation.weights or SHIPPED).read_bytes()).hexdigest()
 
 
 def clean_windows(records: list[dict], episodes: list[dict], settle_s: float = CLEAN_AFTER_S) -> list[dict]:
@@ -235,11 +249,12 @@ def rate_margins(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], wi
                 continue  # only the drift an episode injects counts for its rate (none for drift-free bags)
             for ep in truth["episodes"]:
                 k = int(np.searchsorted(ends, ep["start"], side="right"))
-                if k < len(windows):
-                    first[rate].append(np.nanmax([w.get(rate, np.nan) for w in windows[k:k + within]]))
+                shown = [w.get(rate, np.nan) for w in windows[k:k + within]]
+                if np.any(np.isfinite(shown)):  # (an episode whose windows have no co-plane group shows no rate)
+                    first[rate].append(float(np.nanmax(shown)))
     return {rate: {"drift_free_max": float(np.nanmax(free[rate])) if np.any(np.isfinite(free[rate])) else None,
                    "drift_free_windows": int(np.isfinite(free[rate]).sum()),
-                   "episode_min": float(np.min(first[rate])) if first[rate] else None, "episodes": len(first[rate])}
+                   "episode_min": min(first[rate]) if first[rate] else None, "episodes": len(first[rate])}
             for rate in RATES}
 
 
@@ -296,7 +311,8 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
                       "detected": table["detected"], "episodes": table["episodes"],
                       "false_warn_windows": fa, "minutes": minutes,
                       "false_warns_per_10min": _false_rate(table),
-                      "group_false_warns_per_10min": per_group, "worst_group_false_warns_per_10min": max(per_group),
+                      "group_false_warns_per_10min": per_group,
+                      "worst_group_false_warns_per_10min": max((x for x in per_group if np.isfinite(x)), default=np.nan),
                       "free_bag_false_warns": table["drift_free"]["false_warn_windows"],
                       "free_bag_minutes": table["drift_free"]["minutes"]})
     chosen = choose_sigma(sweep, target_per_10min, margin_sigma, key="worst_group_false_warns_per_10min")
@@ -350,11 +366,12 @@ def format_calibration(doc: dict) -> str:
     for rate, (meaning, unit) in RATES.items():
         m, lim = doc.get("rates", {}).get(rate), doc["health"].get(f"{rate}_warn")
         if m and m["drift_free_max"] is not None:
+            weakest = (f"episodes of that drift at least {m['episode_min']:.3g} {unit} in their first "
+                       f"{doc['within_windows']} windows ({m['episodes']} episodes)" if m["episodes"]
+                       else "no episode of that drift")
             lines.append(f"{meaning} rate: drift-free windows max {m['drift_free_max']:.3g} {unit} "
                          f"({m['drift_free_windows']} windows), WARN limit {lim:g} {unit} (keep it >= "
-                         f"{RATE_MARGIN:g} x that max: {RATE_MARGIN * m['drift_free_max']:.3g}), episodes of that "
-                         f"drift at least {m['episode_min']:.3g} {unit} in their first {doc['within_windows']} "
-                         f"windows ({m['episodes']} episodes)")
+                         f"{RATE_MARGIN:g} x that max: {RATE_MARGIN * m['drift_free_max']:.3g}), {weakest}")
     lines.append("")
     lines.append(f"calibration split ({doc['bags_from']}; {minutes:.1f} min "
                  f"drift-free incl. clean stretches of drift bags): " + (f"warn_sigma {c['warn_sigma']:g} is the smallest with <= "
