@@ -43,7 +43,8 @@ SCALES = (1.0, 1.5, 2.0)
 ALARM = ("WARN", "ERROR")
 GOAL_FALSE_PER_10MIN = 1.0
 SIGMA_GRID = tuple(float(x) for x in np.round(np.arange(2.0, 10.01, 0.25), 2))
-RATE_MARGIN = 1.25  # a drift-rate WARN limit should sit at least this factor above the drift-free maximum
+RATE_MARGIN = 2.0  # a drift-rate WARN limit should sit at least this factor above the drift-free maximum
+RATE_EPISODE_FRACTION = 1 / 3  # ... and at most this fraction of the weakest episode's rate
 CLEAN_AFTER_S = 10.0  # s after a drift episode's end before a drift bag's windows count as drift-free
 
 
@@ -366,12 +367,15 @@ def format_calibration(doc: dict) -> str:
     for rate, (meaning, unit) in RATES.items():
         m, lim = doc.get("rates", {}).get(rate), doc["health"].get(f"{rate}_warn")
         if m and m["drift_free_max"] is not None:
+            low = RATE_MARGIN * m["drift_free_max"]
             weakest = (f"episodes of that drift at least {m['episode_min']:.3g} {unit} in their first "
                        f"{doc['within_windows']} windows ({m['episodes']} episodes)" if m["episodes"]
                        else "no episode of that drift")
+            span = (f"[{low:.3g}, {RATE_EPISODE_FRACTION * m['episode_min']:.3g}]" if m["episodes"] else f">= {low:.3g}")
             lines.append(f"{meaning} rate: drift-free windows max {m['drift_free_max']:.3g} {unit} "
-                         f"({m['drift_free_windows']} windows), WARN limit {lim:g} {unit} (keep it >= "
-                         f"{RATE_MARGIN:g} x that max: {RATE_MARGIN * m['drift_free_max']:.3g}), {weakest}")
+                         f"({m['drift_free_windows']} windows), {weakest}; WARN limit {lim:g} {unit} "
+                         f"(keep it in {span}: {RATE_MARGIN:g} x the drift-free max to "
+                         f"{RATE_EPISODE_FRACTION:.2g} x the weakest episode)")
     lines.append("")
     lines.append(f"calibration split ({doc['bags_from']}; {minutes:.1f} min "
                  f"drift-free incl. clean stretches of drift bags): " + (f"warn_sigma {c['warn_sigma']:g} is the smallest with <= "
