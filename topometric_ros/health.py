@@ -11,8 +11,8 @@ The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_si
 z at or above warn_sigma: drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
 calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
 (config, in metric units, 0 = off) apply at once, from the first window.
-The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s from the normals, m/s from the offsets)
-are physical rates, the same at every site, so they need no baseline: their absolute limits
+The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s from one joint fit to the
+planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their absolute limits
 (``rot_rate_*``, ``trans_rate_*``) act at once, from the first window. They carry most detections; the
 sigma alarms catch inconsistency without a trend (pose noise, jumps).
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
