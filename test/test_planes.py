@@ -8,7 +8,8 @@ import pytest
 
 from topometric_ros import classes as C
 from topometric_ros.config import Config, PlaneConfig
-from topometric_ros.planes import detect_planes, fit_plane, plane_quality
+from topometric_ros.experiments.plane_quality import plane_quality
+from topometric_ros.planes import detect_planes, fit_plane
 from topometric_ros.sim.frames import simulated_frames
 from topometric_ros.sim.lidar import Lidar, LidarSpec
 from topometric_ros.sim.scenes import SceneBuilder
@@ -198,7 +199,7 @@ def test_two_parallel_walls_stay_apart():
 
 def test_detector_quality_is_pooled_over_trajectory_seeds():
     from topometric_ros.cli import _seeds
-    from topometric_ros.planes import evaluate_detector
+    from topometric_ros.experiments.plane_quality import evaluate_detector
 
     assert _seeds("0-2,5") == [0, 1, 2, 5]
     both = evaluate_detector(["office1"], 2, seed=[0, 1], progress=False)["scenes"]["office1"]

@@ -5,6 +5,7 @@ message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose c
 """
 from __future__ import annotations
 
+import json
 from functools import lru_cache
 from pathlib import Path
 from types import SimpleNamespace
@@ -161,3 +162,9 @@ class BagWriter:
             self._conns[topic] = conn
         raw = typestore().serialize_cdr(msg, msg.__msgtype__)
         self._writer.write(conn, int(round(stamp * 1e9)), raw)
+
+
+def load_truth(bag_path: str | Path) -> dict | None:
+    """The truth.json a simulated bag folder carries (settings, drift episodes), or None for other bags."""
+    p = Path(bag_path) / "truth.json"
+    return json.loads(p.read_text()) if p.exists() else None

@@ -84,7 +84,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
-    from .alarms import calibrate, format_calibration, format_detection, run_detection
+    from .experiments.alarms import calibrate, format_calibration, format_detection, run_detection
 
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
@@ -136,7 +136,7 @@ def _words(text: str) -> tuple:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from .evaluate import ExperimentSpec, run
+    from .experiments.evaluate import ExperimentSpec, run
 
     spec = ExperimentSpec.quick() if args.quick else ExperimentSpec()
     given = {"scenes": args.scenes and tuple(args.scenes), "windows": args.win, "noises": args.noise,
@@ -171,7 +171,7 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     import csv
 
     from .config import load_config
-    from .planes import evaluate_detector
+    from .experiments.plane_quality import evaluate_detector, plot_plane_quality
 
     cfg = load_config(args.config, {"planes.detector": args.detector}).planes
     res = evaluate_detector(args.scenes, args.frames, cfg, args.seed)
@@ -193,32 +193,9 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     for scene, r in res["scenes"].items():
         print(f"{scene:10s} {r['recall']:8.3f} {r['worst_recall']:6.3f} {r['recalled']:5d}/{r['truth']:<5d} "
               f"{r['median_purity']:11.4f} {r['planes_per_scan']:12.1f} {r['ms_per_scan']:8.1f}")
-    _plot_plane_quality(res, stem.with_suffix(".png"))
+    plot_plane_quality(res, stem.with_suffix(".png"))
     print(f"wrote {stem}.json, .csv, .png")
     return 0
-
-
-def _plot_plane_quality(res: dict, path: Path) -> None:
-    from .reports import pyplot
-
-    plt = pyplot()
-
-    scenes = list(res["scenes"])
-    x = range(len(scenes))
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.5))
-    a.bar([i - 0.2 for i in x], [res["scenes"][s]["recall"] for s in scenes], 0.4, label="recall")
-    a.bar([i + 0.2 for i in x], [res["scenes"][s]["median_purity"] for s in scenes], 0.4, label="median purity")
-    a.axhline(0.95, color="k", lw=0.8, ls="--")
-    a.set_ylim(0.8, 1.0)
-    a.set_xticks(list(x), scenes)
-    a.legend(loc="lower right")
-    a.set_title(f"plane quality ({res['detector']})")
-    b.bar(list(x), [res["scenes"][s]["ms_per_scan"] for s in scenes])
-    b.set_xticks(list(x), scenes)
-    b.set_ylabel("ms per scan (median)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -397,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
-        from .segmentation.infer import SegmentationError
+        from .segmentation.checkpoint import SegmentationError
 
         if isinstance(e, (BagError, SegmentationError)):
             print(f"error: {e}", file=sys.stderr)

@@ -12,11 +12,10 @@ Detection (:func:`detect_planes`), per static class, two detectors (config.plane
   class, points in each patch box, coplanar patches of one surface merged.
 Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
 joined by a lintel) and refit every plane on all its inliers with :func:`fit_plane`.
-:func:`plane_quality` scores detections against the simulator's plane-instance ids.
+experiments/plane_quality.py scores detections against the simulator's plane-instance ids.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -571,95 +570,3 @@ def _sets_within(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
     small, large = (a, b) if len(a) <= len(b) else (b, a)
     d, _ = cKDTree(large).query(small, k=1, distance_upper_bound=gap)
     return bool(np.isfinite(d).any())
-
-
-# ---- quality against ground-truth plane instances ------------------------------------------------------
-
-def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 200,
-                  static: tuple = C.STATIC) -> dict:
-    """Detected planes of one scan against the simulator's plane-instance ids.
-
-    assign: (N,) plane index per point (−1 none), as ``detect_planes(..., return_inliers=True)`` gives.
-    labels, instance: (N,) ground-truth class and plane-instance id per point.
-
-    Definitions. Ground-truth planes: instances with ≥ ``min_points`` points of a static class. A detected
-    plane's majority instance is the instance most of its inliers come from; its purity is that fraction.
-    A ground-truth plane is recalled when some detected plane has it as majority instance AND holds ≥ 50 %
-    of its points. Returns {'n_truth', 'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one
-    per detected plane), 'missed' (instance ids), 'n_planes'}.
-    """
-    assign = np.asarray(assign)
-    instance = np.asarray(instance).astype(np.int64)
-    keep = np.isin(labels, static)
-    ids, sizes = np.unique(instance[keep], return_counts=True)
-    truth = ids[sizes >= min_points]
-    size_of = dict(zip(ids.tolist(), sizes.tolist()))
-    det = assign >= 0
-    pairs, overlap = np.unique(np.stack([assign[det].astype(np.int64), instance[det]], 1), axis=0,
-                               return_counts=True)
-    recalled, purity = set(), []
-    if len(pairs):
-        planes, starts = np.unique(pairs[:, 0], return_index=True)
-        for start, stop in zip(starts, list(starts[1:]) + [len(pairs)]):
-            k = start + int(np.argmax(overlap[start:stop]))
-            purity.append(float(overlap[k] / overlap[start:stop].sum()))
-            inst = int(pairs[k, 1])
-            if overlap[k] >= 0.5 * size_of.get(inst, np.inf):
-                recalled.add(inst)
-    hit = [int(i) for i in truth if int(i) in recalled]
-    return {"n_truth": int(len(truth)), "n_recalled": len(hit),
-            "recall": len(hit) / len(truth) if len(truth) else float("nan"), "purity": purity,
-            "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
-
-
-def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequence[int] = 0, min_points: int = 200,
-                      progress: bool = True) -> dict:
-    """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
-
-    For each scene and each trajectory seed: ``frames`` scans of simulated_frames(scene, frames, seed=seed);
-    per scene, pooled over the seeds, the recall (recalled / ground-truth planes over all scans, see
-    :func:`plane_quality`), the median purity over all detected planes, planes per scan and the median
-    detection time per scan (ms, wall clock, this process); 'recall_per_seed' and 'worst_recall' show the
-    spread between trajectories.
-    Returns {'detector', 'frames', 'seeds', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
-    """
-    import time
-
-    from tqdm import tqdm
-
-    from .config import PlaneConfig
-    from .sim.frames import simulated_frames
-
-    cfg = config if config is not None else PlaneConfig()
-    seeds = [seed] if isinstance(seed, (int, np.integer)) else list(seed)
-    out = {"detector": cfg.detector, "frames": frames, "seeds": seeds, "min_points": min_points, "scenes": {},
-           "scans": []}
-    for scene in scenes:
-        truth = recalled = 0
-        purity, n_planes, ms, per_seed = [], [], [], {}
-        for s in seeds:
-            sim, instances = simulated_frames(scene, frames, seed=s)
-            seed_truth = seed_recalled = 0
-            for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} seed {s} ({cfg.detector})",
-                                               disable=not progress, leave=False)):
-                t = time.perf_counter()
-                planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
-                ms.append(1000 * (time.perf_counter() - t))
-                q = plane_quality(assign, f.labels, inst, min_points)
-                seed_truth, seed_recalled = seed_truth + q["n_truth"], seed_recalled + q["n_recalled"]
-                purity += q["purity"]
-                n_planes.append(len(planes))
-                out["scans"].append({"scene": scene, "seed": s, "frame": i, "points": len(f.points),
-                                     "planes": len(planes), "truth": q["n_truth"], "recalled": q["n_recalled"],
-                                     "missed": q["missed"],
-                                     "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
-                                     "ms": round(ms[-1], 3)})
-            per_seed[s] = seed_recalled / seed_truth if seed_truth else float("nan")
-            truth, recalled = truth + seed_truth, recalled + seed_recalled
-        out["scenes"][scene] = {"recall": recalled / truth if truth else float("nan"), "truth": truth,
-                                "recalled": recalled, "recall_per_seed": per_seed,
-                                "worst_recall": float(np.nanmin(list(per_seed.values()))),
-                                "median_purity": float(np.median(purity)) if purity else float("nan"),
-                                "min_purity": float(np.min(purity)) if purity else float("nan"),
-                                "planes_per_scan": float(np.mean(n_planes)), "ms_per_scan": float(np.median(ms))}
-    return out

@@ -268,10 +268,8 @@ def _scan_count(path, topic: str) -> int | None:
 
 
 def _truth(path) -> dict | None:
-    from .sim.writer import load_truth
-
     p = Path(path)
-    return load_truth(p if p.is_dir() else p.parent)
+    return bag.load_truth(p if p.is_dir() else p.parent)
 
 
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:

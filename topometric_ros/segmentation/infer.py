@@ -1,8 +1,6 @@
 """Run the shipped (or a given) range-image network on scans: per-point labels and confidence.
 
-Weights are a torch file {'model_card': dict, 'state_dict': tensors} read with
-``torch.load(weights_only=True)`` (no arbitrary code runs), checked key by key and shape by shape
-against the net the card describes. Any problem raises SegmentationError with the reason.
+Weights come through checkpoint.py (safe load, key/shape/digest checks, SegmentationError with the reason).
 
 CPU backends: ``onnxruntime`` (default) exports the checked network (BatchNorm folded, softmax and arg-max
 included) to ONNX in memory at load time and runs it with ONNX Runtime; the export is verified against
@@ -11,9 +9,7 @@ warning. The shipped weights stay one ``.pt`` file; no ONNX file is written or r
 """
 from __future__ import annotations
 
-import hashlib
 import io
-import json
 import logging
 import warnings
 from pathlib import Path
@@ -26,11 +22,10 @@ from torch import nn
 
 from .. import classes as C
 from ..config import SegmentationConfig
-from .model import ModelSpec, RangeNet, fold_batchnorm
+from .model import RangeNet, fold_batchnorm
 from .projection import HEIGHT, WIDTH, Projection, project
-from .train import CARD_NAME, FORMAT_VERSION, WEIGHTS_NAME, state_digest
+from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights
 
-SHIPPED = Path(__file__).resolve().parent / "weights" / WEIGHTS_NAME
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
 EXPORT_TOLERANCE = 1e-3
@@ -38,84 +33,6 @@ EXPORT_TOLERANCE = 1e-3
 log = logging.getLogger(__name__)
 
 Scan = tuple  # (points (N, 3) float32, ring (N,) | None, intensity (N,) | None)
-
-
-class SegmentationError(ValueError):
-    """Weights that are missing, unreadable, tampered with or do not fit the network; bad device."""
-
-
-def load_weights(path: str | Path) -> tuple[dict, dict]:
-    """(model card, state dict) of a weights file, loaded without executing code."""
-    path = Path(path)
-    if not path.is_file():
-        raise SegmentationError(f"segmentation weights not found: {path}")
-    try:
-        doc = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # UnpicklingError, RuntimeError (zip), EOFError, ... for garbage or unsafe pickles
-        raise SegmentationError(f"cannot load segmentation weights {path}: not a safe torch weights file "
-                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("model_card"), dict) or not isinstance(doc.get("state_dict"), dict):
-        raise SegmentationError(f"{path}: expected {{'model_card': dict, 'state_dict': dict}}, got {type(doc).__name__}"
-                                + (f" with keys {sorted(map(str, doc))}" if isinstance(doc, dict) else ""))
-    _check_checksum(path)
-    state = doc["state_dict"]
-    bad = [str(k) for k, v in state.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
-    if bad:
-        raise SegmentationError(f"{path}: state dict entries that are not named tensors: {bad[:5]}")
-    _check_state_digest(state, doc.get("state_sha256"), str(path))
-    return doc["model_card"], state
-
-
-def _check_state_digest(state: dict, digest: object, source: str) -> None:
-    """The tensors must hash to the digest saved with them (catches modified or corrupted weights)."""
-    if not isinstance(digest, str):
-        raise SegmentationError(f"{source}: no state_sha256 digest; not a weights file written by topometric train")
-    if state_digest(state) != digest:
-        raise SegmentationError(f"{source}: tensor checksum mismatch; the weights were modified or corrupted")
-
-
-def _check_checksum(path: Path) -> None:
-    """When a model_card.json next to the weights names their sha256, the file must match it."""
-    card_path = path.parent / CARD_NAME
-    if not card_path.is_file():
-        return
-    try:
-        want = json.loads(card_path.read_text()).get("weights", {})
-    except (json.JSONDecodeError, AttributeError):
-        raise SegmentationError(f"{card_path}: not a valid model card (JSON)") from None
-    if want.get("file") == path.name and want.get("sha256"):
-        got = hashlib.sha256(path.read_bytes()).hexdigest()
-        if got != want["sha256"]:
-            raise SegmentationError(f"{path}: sha256 {got[:12]}… does not match {card_path} ({want['sha256'][:12]}…); "
-                                    "the weights were modified")
-
-
-def build_model(card: dict, state: dict, source: str = "weights") -> RangeNet:
-    """The network the card describes with ``state`` loaded, after checking every key and shape."""
-    if card.get("format_version") != FORMAT_VERSION:
-        raise SegmentationError(f"{source}: model card format {card.get('format_version')!r}, expected {FORMAT_VERSION}")
-    if list(card.get("classes", [])) != list(C.NAMES):
-        raise SegmentationError(f"{source}: classes {card.get('classes')} differ from {list(C.NAMES)}")
-    try:
-        spec = ModelSpec.from_dict(card["model"])
-        model = RangeNet(spec)
-    except Exception as e:  # wrong types or sizes in the card
-        raise SegmentationError(f"{source}: model card does not describe a valid network: {e}") from None
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    extra = sorted(set(state) - set(expected))
-    if missing or extra:
-        raise SegmentationError(f"{source}: state dict does not fit the network: missing {missing[:5]}, "
-                                f"unexpected {extra[:5]}")
-    for k, v in expected.items():
-        got = state[k]
-        if not isinstance(got, torch.Tensor) or got.shape != v.shape or got.dtype != v.dtype:
-            desc = f"{tuple(got.shape)} {got.dtype}" if isinstance(got, torch.Tensor) else type(got).__name__
-            raise SegmentationError(f"{source}: tensor {k!r} is {desc}, the network needs {tuple(v.shape)} {v.dtype}")
-        if v.is_floating_point() and not torch.isfinite(got).all():
-            raise SegmentationError(f"{source}: tensor {k!r} has non-finite values")
-    model.load_state_dict(state)
-    return model.eval().set_circular(True)
 
 
 class Labeller(nn.Module):

@@ -10,7 +10,6 @@ max(step fraction, time fraction) and training stops cleanly when the time is up
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -23,13 +22,12 @@ import torch
 from torch.nn import functional as F
 
 from .. import classes as C
+from .checkpoint import FORMAT_VERSION, build_model, load_weights, save_weights, state_digest
 from .data import load_or_build_cache
 from .metrics import confusion, iou_per_class, miou
 from .model import ModelSpec, RangeNet, count_parameters
 from .projection import CHANNELS, HEIGHT, WIDTH
 
-WEIGHTS_NAME, CARD_NAME = "rangenet.pt", "model_card.json"
-FORMAT_VERSION = 1
 
 
 @dataclass
@@ -210,8 +208,6 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     images, labels = data["images"], data["labels"]
     weights = torch.from_numpy(class_weights(labels))
     if init:
-        from .infer import build_model, load_weights
-
         init_card, init_state = load_weights(init)
         model, started = build_model(init_card, init_state, str(init)), init_record(init, init_card, init_state)
         spec = model.spec
@@ -287,28 +283,3 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
                       len(images), count_parameters(model), time.perf_counter() - t0, selected, started)
     save_weights(model, card, out)
     return card
-
-
-def state_digest(state: dict) -> str:
-    """sha256 over the names, dtypes, shapes and bytes of a state dict's tensors (sorted by name)."""
-    h = hashlib.sha256()
-    for k in sorted(state):
-        v = state[k].detach().cpu().contiguous()
-        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
-        h.update(v.reshape(-1).view(torch.uint8).numpy().tobytes() if v.numel() else b"")
-    return h.hexdigest()
-
-
-def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
-    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
-    OUT/model_card.json = card + the file's sha256."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / WEIGHTS_NAME
-    state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
-    card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
-    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
-    doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-                               "bytes": path.stat().st_size}}
-    (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
-    return path

@@ -105,12 +105,6 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
     return summary
 
 
-def load_truth(bag_path: str | Path) -> dict | None:
-    """The truth.json a simulated bag carries, or None for other bags."""
-    p = Path(bag_path) / "truth.json"
-    return json.loads(p.read_text()) if p.exists() else None
-
-
 def bag_identity(truth: dict | None) -> dict | None:
     """What makes a simulated bag what it is (its config and the simulator version), from its truth.json:
     equal identities, equal bags."""
