@@ -8,6 +8,7 @@ from __future__ import annotations
 import bisect
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,10 @@ class Frame:
     pose: (4, 4) float64, sensor-to-map.
     stamp: seconds (header stamp of the cloud).
     labels: optional (N,) uint8 class ids (classes.py), e.g. the simulator's ground truth.
-    ring: optional (N,) uint16 beam index (0 = lowest), intensity: optional (N,) float32.
+    ring: optional (N,) beam id as the cloud gives it (ring field, else the organised row; grid.py orders
+    them by elevation), intensity: optional (N,) float32.
+    time: optional (N,) float32 s of each point relative to ``stamp``; columns: firings per revolution of an
+    organised cloud (0 = unknown); motion: deskew.SweepMotion when the points are to be deskewed.
     """
 
     points: np.ndarray
@@ -31,6 +35,9 @@ class Frame:
     labels: np.ndarray | None = None
     ring: np.ndarray | None = None
     intensity: np.ndarray | None = None
+    time: np.ndarray | None = None
+    columns: int = 0
+    motion: Any = None
 
     def __len__(self) -> int:
         return len(self.points)

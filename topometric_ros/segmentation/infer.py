@@ -23,16 +23,18 @@ from torch import nn
 from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
-from .projection import HEIGHT, WIDTH, Projection, project
+from .projection import Projection, project
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights
 
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
 EXPORT_TOLERANCE = 1e-3
+#: Image shape (rows, columns) the ONNX export is first made and checked for: a 32-beam, 1800-column grid.
+PROBE_SHAPE = (32, 1800)
 
 log = logging.getLogger(__name__)
 
-Scan = tuple  # (points (N, 3) float32, ring (N,) | None, intensity (N,) | None)
+Scan = tuple  # (points (N, 3) float32, grid.ScanGrid | beam ids (N,) | None, intensity (N,) | None)
 
 
 class Labeller(nn.Module):
@@ -101,12 +103,13 @@ def _probe_input(height: int, width: int) -> torch.Tensor:
 
 
 class Segmenter:
-    """Per-point semantic labels of LiDAR scans with the range-image network.
+    """Per-point semantic labels of LiDAR scans with the range-image network, for any grid (projection.py).
 
     Use :meth:`from_config`; :meth:`predict` one scan, :meth:`predict_batch` several (same result as one
     at a time). CPU inference uses ``threads`` threads (1 by default) and ``backend`` onnxruntime (default;
-    eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ``self.backend``
-    says which one runs.
+    eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ONNX Runtime runs one
+    export per image shape, made (and checked) the first time a shape is seen. ``self.backend`` says which
+    one runs.
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
@@ -120,20 +123,14 @@ class Segmenter:
         self.device = torch.device(device)
         self.threads = threads
         self.card = card
-        self.height = int(card.get("input", {}).get("height", HEIGHT))
-        self.width = int(card.get("input", {}).get("width", WIDTH))
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         self.labeller = Labeller(self.model).eval()
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
-        self.backend, self._onnx = "eager", None
-        if backend == "onnxruntime" and self.device.type == "cpu":
-            try:
-                self._onnx = _OnnxRunner(self.labeller, self.height, self.width, threads)
-                self.backend = "onnxruntime"
-            except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
-                log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
-                            type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+        self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
+        self._onnx: dict[tuple[int, int], _OnnxRunner] = {}
+        if self.backend == "onnxruntime":
+            self._runner(*PROBE_SHAPE)  # fail over to eager now, not on the first scan
 
     @classmethod
     def from_config(cls, cfg: SegmentationConfig) -> "Segmenter":
@@ -142,45 +139,70 @@ class Segmenter:
         card, state = load_weights(path)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend)
 
-    def predict(self, points: np.ndarray, ring: np.ndarray | None = None,
-                intensity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
         """(labels (N,) uint8 class ids, confidence (N,) float32 softmax probability of that label) of one
-        scan: points (N, 3) float32 in the sensor frame, optional ring (N,) and intensity (N,)."""
-        return self.predict_batch([(points, ring, intensity)])[0]
+        scan: points (N, 3) float32 in the sensor frame, its grid.ScanGrid (or the cloud's (N,) beam ids, or
+        None) and optional intensity (N,)."""
+        return self.predict_batch([(points, grid, intensity)])[0]
 
     def predict_batch(self, scans: Sequence[Scan]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """:meth:`predict` for each (points, ring, intensity) of ``scans``, run as one batch."""
-        if not scans:
-            return []
-        images, projections = [], []
-        for points, ring, intensity in scans:
-            image, proj = project(points, ring, intensity, self.height, self.width)
-            images.append(image)
-            projections.append(proj)
-        labels, conf = self._run(images[0][None] if len(images) == 1 else np.stack(images))  # no copy for one scan
-        return [(proj.unproject(lab), proj.unproject(cf)) for proj, lab, cf in zip(projections, labels, conf)]
+        """:meth:`predict` for each (points, grid, intensity) of ``scans``; scans whose images have the same
+        shape run as one batch."""
+        projected = [project(points, grid, intensity) for points, grid, intensity in scans]
+        out: list = [None] * len(projected)
+        shapes: dict[tuple, list[int]] = {}
+        for i, (image, _) in enumerate(projected):
+            shapes.setdefault(image.shape[1:], []).append(i)
+        for members in shapes.values():
+            images = np.concatenate([projected[i][0] for i in members])
+            labels, conf = self._run(images)
+            start = 0
+            for i in members:
+                proj = projected[i][1]
+                stop = start + proj.images
+                out[i] = (proj.unproject(labels[start:stop]), proj.unproject(conf[start:stop]))
+                start = stop
+        return out
 
-    def predict_image(self, image: np.ndarray, proj: Projection) -> tuple[np.ndarray, np.ndarray]:
-        """Per-point (labels, confidence) of an already projected scan."""
-        labels, conf = self._run(image[None])
-        return proj.unproject(labels[0]), proj.unproject(conf[0])
+    def predict_image(self, images: np.ndarray, proj: Projection) -> tuple[np.ndarray, np.ndarray]:
+        """Per-point (labels, confidence) of an already projected scan (its (images, 6, rows, width) stack)."""
+        labels, conf = self._run(images)
+        return proj.unproject(labels), proj.unproject(conf)
 
     def _run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images."""
-        if self._onnx is not None:
-            return self._onnx(images)
+        if self.backend == "onnxruntime":
+            runner = self._runner(images.shape[2], images.shape[3])
+            if runner is not None:
+                return runner(images)
         return self._run_eager(images)
+
+    def _runner(self, height: int, width: int) -> "_OnnxRunner | None":
+        """The ONNX Runtime export for images of this shape (made and checked once); on failure the
+        Segmenter switches to eager PyTorch with a warning and returns None."""
+        key = (int(height), int(width))
+        if key not in self._onnx:
+            try:
+                self._onnx[key] = _OnnxRunner(self.labeller, *key, self.threads)
+            except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
+                log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
+                            type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+                self.backend = "eager"
+                return None
+        return self._onnx[key]
 
     @torch.inference_mode()
     def _run_eager(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = torch.from_numpy(images).to(self.device, non_blocking=True)
+        x = torch.from_numpy(np.ascontiguousarray(images, np.float32)).to(self.device, non_blocking=True)
         labels, conf = self.labeller(x)
         return labels.cpu().numpy(), conf.float().cpu().numpy()
 
 
-def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = None
+def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = None, grid=None
                   ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(labels (N,) uint8, confidence (N,) float32 or None) of a window.Frame as ``cfg.mode`` says.
+    """(labels (N,) uint8, confidence (N,) float32 or None) of a window.Frame (on ``grid``, its grid.ScanGrid
+    when already built) as ``cfg.mode`` says.
 
     network: ``segmenter`` predicts (points below ``cfg.min_confidence`` become OTHER); labels: the frame's
     own label field (e.g. simulator ground truth; confidence None); none: (None, None), every point static.
@@ -195,7 +217,7 @@ def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = 
         raise SegmentationError(f"unknown segmentation mode {cfg.mode!r}; use network, labels or none")
     if segmenter is None:
         raise SegmentationError("segmentation mode 'network' needs a Segmenter (Segmenter.from_config)")
-    labels, conf = segmenter.predict(frame.points, frame.ring, frame.intensity)
+    labels, conf = segmenter.predict(frame.points, grid if grid is not None else frame.ring, frame.intensity)
     if cfg.min_confidence > 0:
         labels = np.where(conf < cfg.min_confidence, np.uint8(C.OTHER), labels)
     return labels, conf
