@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from .sensors import DEFAULT_SENSOR, SENSORS
+
 
 def _scenes(text: str) -> list[str]:
     from .sim.scenes import SCENES
@@ -17,13 +19,22 @@ def _scenes(text: str) -> list[str]:
     return names
 
 
+def _sensor(text: str) -> str:
+    from .sensors import sensor
+
+    try:
+        return sensor(text).name
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def _sim_config(args: argparse.Namespace, scene: str):
     from .sim.drift import DriftSpec
     from .sim.writer import SimConfig
 
     return SimConfig(scene=scene, layout_seed=args.layout_seed, seed=args.seed, frames=args.frames, rate=args.rate,
                      odom_rate=args.odom_rate, speed=args.speed, drift=DriftSpec.parse(args.drift, args.drift_kind),
-                     storage=args.storage)
+                     storage=args.storage, sensor=args.sensor, distortion=not args.no_distortion)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -247,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    s = sub.add_parser("simulate", help="simulate a VLP-32C robot run in an indoor scene and write a rosbag2 bag")
+    s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
     s.add_argument("--frames", type=int, default=600, help="scans per bag (default 600)")
     s.add_argument("--rate", type=float, default=5.0, help="scans per second (5 or 10; default 5)")
@@ -259,6 +270,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="trajectory/noise seed")
     s.add_argument("--layout-seed", type=int, default=0, help="floor-plan seed (a new seed is an unseen layout)")
     s.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"))
+    s.add_argument("--sensor", default=DEFAULT_SENSOR, type=_sensor,
+                   help=f"LiDAR model and its driver's cloud layout (default {DEFAULT_SENSOR}); one of: {', '.join(SENSORS)}")
+    s.add_argument("--no-distortion", action="store_true",
+                   help="instantaneous sweeps (default: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")
     s.add_argument("--train", type=int, default=2, help="train trajectories per scene with --split")
     s.add_argument("--test", type=int, default=1, help="test trajectories per scene with --split")

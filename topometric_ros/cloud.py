@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from types import SimpleNamespace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -256,6 +256,30 @@ def make_cloud(arrays: Mapping[str, np.ndarray], stamp: float, frame_id: str, ty
         height=1, width=n,
         fields=[types.PointField(name=nm, offset=o, datatype=dt, count=c) for nm, o, dt, c in fields],
         is_bigendian=False, point_step=point_step, row_step=point_step * n, data=data(buf), is_dense=True)
+
+
+def make_layout_cloud(arrays: Mapping[str, np.ndarray], fields: Sequence[tuple[str, int, int]], point_step: int,
+                      stamp: float, frame_id: str, types: Any, height: int = 1, padding: Sequence[tuple] = (),
+                      is_dense: bool = False) -> Any:
+    """A PointCloud2 with exactly the given layout: ``fields`` ((name, byte offset, datatype), ...) of
+    ``point_step`` bytes, filled from ``arrays`` (name -> (N,) array; a field without an array stays 0),
+    ``padding`` ((offset, float32 value), ...) bytes a driver fills, ``height`` rows of N / height points."""
+    n = len(next(iter(arrays.values())))
+    dtype = np.dtype({"names": [f[0] for f in fields], "offsets": [f[1] for f in fields], "itemsize": point_step,
+                      "formats": ["<" + DATATYPES[f[2]] for f in fields]})
+    out = np.zeros(n, dtype)
+    for name, _, _ in fields:
+        if name in arrays:
+            out[name] = arrays[name]
+    buf = out.view(np.uint8).reshape(n, point_step)
+    for offset, value in padding:
+        buf[:, offset:offset + 4] = np.frombuffer(np.float32(value).tobytes(), np.uint8)
+    width = n // height
+    return types.PointCloud2(
+        header=make_header(stamp, frame_id, types), height=height, width=width,
+        fields=[types.PointField(name=nm, offset=o, datatype=dt, count=1) for nm, o, dt in fields],
+        is_bigendian=False, point_step=point_step, row_step=point_step * width, data=buf.reshape(-1),
+        is_dense=is_dense)
 
 
 def make_header(stamp: float, frame_id: str, types: Any) -> Any:
