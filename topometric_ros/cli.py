@@ -19,11 +19,14 @@ def _scenes(text: str) -> list[str]:
     return names
 
 
-def _sensor(text: str) -> str:
+def _sensors(text: str) -> list[str]:
+    """'VLP-16' | 'VLP-16,OS1-128' | 'all' -> sensor model names."""
     from .sensors import sensor
 
+    if text.strip().lower() == "all":
+        return list(SENSORS)
     try:
-        return sensor(text).name
+        return [sensor(t.strip()).name for t in text.split(",") if t.strip()]
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
@@ -34,24 +37,31 @@ def _sim_config(args: argparse.Namespace, scene: str):
 
     return SimConfig(scene=scene, layout_seed=args.layout_seed, seed=args.seed, frames=args.frames, rate=args.rate,
                      odom_rate=args.odom_rate, speed=args.speed, drift=DriftSpec.parse(args.drift, args.drift_kind),
-                     storage=args.storage, sensor=args.sensor, distortion=not args.no_distortion)
+                     storage=args.storage, sensor=args.sensor[0], distortion=not args.no_distortion)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    """One bag, or with --split train/test bags per scene; with several --sensor models, one set per sensor
+    under OUT/<sensor>/."""
+    from dataclasses import replace
+
     from .sim.writer import format_summary, simulate, simulate_split
 
     out = Path(args.out)
-    if args.split:
-        summaries = simulate_split(args.scene, out, _sim_config(args, args.scene[0]), args.train, args.test)
-        for s in summaries:
-            print(f"[{s['split']}] {s['bag']}: {s['frames']} scans, {s['path_length_m']:.0f} m, {s['elapsed_s']:.1f} s")
-        (out / "split.json").write_text(json.dumps(summaries, indent=2))
-        print(f"wrote {len(summaries)} bags under {out} (index: {out / 'split.json'})")
-        return 0
-    if len(args.scene) != 1:
+    if not args.split and len(args.scene) != 1:
         print("error: give one --scene without --split", file=sys.stderr)
         return 2
-    print(format_summary(simulate(_sim_config(args, args.scene[0]), out)))
+    for name in args.sensor:
+        target = out / name if len(args.sensor) > 1 else out
+        cfg = replace(_sim_config(args, args.scene[0]), sensor=name)
+        if not args.split:
+            print(format_summary(simulate(cfg, target)))
+            continue
+        summaries = simulate_split(args.scene, target, cfg, args.train, args.test)
+        for s in summaries:
+            print(f"[{s['split']}] {s['bag']}: {s['frames']} scans, {s['path_length_m']:.0f} m, {s['elapsed_s']:.1f} s")
+        (target / "split.json").write_text(json.dumps(summaries, indent=2))
+        print(f"wrote {len(summaries)} bags under {target} (index: {target / 'split.json'})")
     return 0
 
 
@@ -92,6 +102,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
           + ("" if args.no_plot else ", metrics.png"))
     return 1 if res.summary["error"] else 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from .inspect import inspect_bag
+
+    config = _monitor_config(args)
+    rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, plot=not args.no_plot)
+    cols = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
+    print(f"segmentation {config.segmentation.mode}; sensor {config.sensor.model or 'read off each cloud'}")
+    print("  ".join(f"{c:>10s}" for c in cols))
+    for r in rows:
+        print("  ".join(f"{str(r.get(c, '')):>10s}" for c in cols) + (f"  ERROR {r['error']}" if "error" in r else ""))
+    print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_<k>.png per scan"))
+    return 1 if rows and all("error" in r for r in rows) else 0
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
@@ -270,8 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="trajectory/noise seed")
     s.add_argument("--layout-seed", type=int, default=0, help="floor-plan seed (a new seed is an unseen layout)")
     s.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"))
-    s.add_argument("--sensor", default=DEFAULT_SENSOR, type=_sensor,
-                   help=f"LiDAR model and its driver's cloud layout (default {DEFAULT_SENSOR}); one of: {', '.join(SENSORS)}")
+    s.add_argument("--sensor", default=[DEFAULT_SENSOR], type=_sensors,
+                   help=f"LiDAR model(s) and their driver's cloud layout: a name, a comma list (one set of bags per "
+                        f"sensor under OUT/<sensor>/) or 'all'; default {DEFAULT_SENSOR}; known: {', '.join(SENSORS)}")
     s.add_argument("--no-distortion", action="store_true",
                    help="instantaneous sweeps (default: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")
@@ -326,6 +351,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
+
+    i = sub.add_parser("inspect", help="per-scan stages on a bag's clouds (no odometry needed): layout, grid, "
+                                       "segmentation, planes; a PNG per scan and scans.csv")
+    i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
+    i.add_argument("--out", default="out/inspect", help="output folder")
+    i.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one)")
+    i.add_argument("--every", type=int, default=1, help="every n-th cloud")
+    i.add_argument("--limit", type=int, default=10, help="at most this many clouds")
+    i.add_argument("--no-plot", action="store_true")
+    _add_monitor_args(i)
+    i.set_defaults(func=cmd_inspect)
 
     a = sub.add_parser("alarms", help="drift-alarm detection table on held-out simulated bags (r/t/rt x 1/1.5/2)")
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")

@@ -127,19 +127,31 @@ def _medians(beam: np.ndarray, el: np.ndarray, ids: np.ndarray) -> np.ndarray:
 
 def beam_centres(points: np.ndarray, el: np.ndarray | None = None) -> np.ndarray | None:
     """Elevations (deg, ascending) of the beams a spinning LiDAR's scan shows, or None when its elevations
-    form no beams (a non-repetitive pattern): far points' sorted elevations split at gaps >= BEAM_GAP_DEG."""
+    form no beams (a non-repetitive pattern): the sorted elevations of points beyond CLUSTER_MIN_RANGE split
+    at gaps >= BEAM_GAP_DEG; near points far from every such beam (steep beams that only hit the floor close
+    by) add beams of their own."""
     el = elevation_deg(points) if el is None else el
-    rng = np.linalg.norm(points, axis=1)
-    far = el[rng >= CLUSTER_MIN_RANGE]
-    e = np.sort(far if len(far) >= 100 else el)
+    far = np.linalg.norm(points, axis=1) >= CLUSTER_MIN_RANGE
+    centres = _clusters(el[far] if far.sum() >= 100 else el)
+    if centres is None or len(centres) < MIN_BEAMS:
+        return None
+    spacing = float(np.median(np.diff(centres))) if len(centres) > 1 else 1.0
+    near = el[~far]
+    lone = near[np.abs(near[:, None] - centres[None]).min(axis=1) > max(BEAM_GAP_DEG, 0.4 * spacing)] if len(near) else near
+    extra = _clusters(lone, min_size=max(3, int(0.001 * len(el)))) if len(lone) else None
+    return centres if extra is None else np.sort(np.concatenate([centres, extra]))
+
+
+def _clusters(el: np.ndarray, min_size: int = 0) -> np.ndarray | None:
+    """Medians of the runs of sorted elevations split at gaps >= BEAM_GAP_DEG (runs below 2 % of the median
+    run, or ``min_size``, dropped), or None when a run is wider than one beam can be."""
+    e = np.sort(el)
     if len(e) < 2:
         return None
-    cuts = np.flatnonzero(np.diff(e) >= BEAM_GAP_DEG) + 1
-    parts = np.split(e, cuts)
+    parts = np.split(e, np.flatnonzero(np.diff(e) >= BEAM_GAP_DEG) + 1)
     sizes = np.array([len(p) for p in parts])
-    keep = sizes >= max(3, 0.02 * np.median(sizes))  # a handful of stray points is no beam
-    parts = [p for p, k in zip(parts, keep) if k]
-    if len(parts) < MIN_BEAMS or max(p[-1] - p[0] for p in parts) > MAX_BEAM_WIDTH_DEG:
+    parts = [p for p in parts if len(p) >= max(3, min_size, 0.02 * np.median(sizes))]
+    if not parts or max(p[-1] - p[0] for p in parts) > MAX_BEAM_WIDTH_DEG:
         return None
     return np.array([np.median(p) for p in parts])
 
