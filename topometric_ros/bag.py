@@ -48,6 +48,24 @@ def topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
+def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = "", default: str = "",
+               exclude: Iterable[str] = ()) -> tuple[str, str]:
+    """(topic, note): ``given`` when the bag has it; else the bag's only topic of ``msgtype`` (not in
+    ``exclude``), with a note saying so; else ``given`` or ``default`` as it is (the caller reports it missing)."""
+    if given and given in topics:
+        return given, ""
+    of_type = [t for t, (kind, _) in sorted(topics.items()) if kind == msgtype and t not in set(exclude)]
+    if len(of_type) == 1 and (given or default) not in topics:
+        wanted = f"{given} is not in the bag" if given else f"no {msgtype.rsplit('/', 1)[-1]} topic named"
+        return of_type[0], f"{wanted}; using its only {msgtype} topic {of_type[0]}"
+    return given or default, ""
+
+
+def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
+    """'/a (type, n messages), ...' for a topic listing."""
+    return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items())) or "no topics"
+
+
 def _open(path: str | Path, reader_cls: Any) -> Any:
     path = Path(path)
     if not path.exists():

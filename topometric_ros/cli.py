@@ -344,8 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--rate", default="max", help="max (default, every window processed), realtime, or a speed factor")
-    r.add_argument("--points-topic", default="/points")
-    r.add_argument("--odom-topic", default="/odom")
+    r.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one, else /points)")
+    r.add_argument("--odom-topic", default="", help="nav_msgs/Odometry topic of the SLAM estimate (default: the "
+                                                    "bag's only one besides --gt-topic, else /odom)")
     r.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
     r.add_argument("--no-plot", action="store_true")
     r.add_argument("--quiet", action="store_true", help="no progress bar")

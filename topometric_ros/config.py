@@ -188,6 +188,8 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
 
 def _coerce(name: str, current: Any, value: Any) -> Any:
     kind = type(current)
+    if kind is str and isinstance(value, bool) and {"on", "off"} <= set(CHOICES.get(name, ())):
+        return "on" if value else "off"  # YAML 1.1 reads a bare on / off as a boolean
     if kind is bool:
         if isinstance(value, bool):
             return value

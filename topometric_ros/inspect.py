@@ -26,21 +26,13 @@ CLASS_COLOURS = np.array([[0.6, 0.6, 0.6], [0.55, 0.35, 0.15], [0.12, 0.47, 0.71
 
 
 def cloud_topic(path: str | Path, topic: str = "") -> str:
-    """``topic`` if given, else the bag's only PointCloud2 topic; BagError listing the topics otherwise."""
+    """``topic`` if the bag has it, else the bag's only PointCloud2 topic; BagError listing the topics otherwise."""
     topics = bag.topics(path)
-    if topic:
-        if topic not in topics:
-            raise bag.BagError(f"topic {topic} not in {path}; it has: {_listing(topics)}")
-        return topic
-    clouds = [t for t, (kind, _) in topics.items() if kind == bag.POINTCLOUD2]
-    if len(clouds) != 1:
-        raise bag.BagError(f"{path} has {len(clouds)} PointCloud2 topics; name one with --points-topic. "
-                           f"Topics: {_listing(topics)}")
-    return clouds[0]
-
-
-def _listing(topics: dict) -> str:
-    return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items()))
+    found, _ = bag.pick_topic(topics, bag.POINTCLOUD2, topic, "/points")
+    if found not in topics:
+        raise bag.BagError(f"no PointCloud2 topic {found} in {path}; name one with --points-topic. "
+                           f"Topics: {bag.describe_topics(topics)}")
+    return found
 
 
 def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None, topic: str = "",

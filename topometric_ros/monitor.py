@@ -388,16 +388,18 @@ class Monitor:
             self._submit(frame, scan.arrived)
 
     def _motion(self, scan: _Scan):
-        """The sensor's motion over the scan's sweep from the odometry (deskew.sweep_motion), None when the
-        scan is not deskewed or the odometry does not cover the sweep (counted)."""
+        """The sensor's motion over the scan's sweep from the odometry (deskew.sweep_motion; past the newest
+        pose, at most one sweep, the last motion continues), None when the scan is not deskewed or the
+        odometry does not cover the sweep (counted)."""
         from .deskew import sweep_motion
 
         if scan.sweep is None:
             return None
         gap = self.config.window.max_pose_gap_s
+        period = scan.sweep[2]
 
-        def pose_at(t: float):
-            pose = self.poses.lookup(t, gap)
+        def pose_at(t: float):  # odometry that ends inside the sweep is continued to its end
+            pose = self.poses.lookup(t, gap, extrapolate_s=period)
             return None if pose is None else pose @ self.extrinsic
 
         motion = sweep_motion(pose_at, scan.stamp, *scan.sweep)
