@@ -10,7 +10,8 @@ Rows, 0 = the lowest beam, from the first of:
 3. the scan's own elevation clusters (no sensor named, no ring field): beams are the gaps in the sorted
    elevations of the scan's far points;
 4. a non-repetitive pattern (a sensor named so, or a scan whose elevations form no beams): uniform
-   elevation bins, no beams needed.
+   elevation bins, no beams needed, and as many azimuth cells as make them square (a sparse pattern then
+   puts a few points in each cell, which the tiles of the plane detector need).
 Columns: ``width`` azimuth cells of 2π / width, column 0 centred on the sensor's +x axis, counter-clockwise; width
 is the sensor's firings per revolution (named sensor, or the organised cloud's width, or estimated from
 the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit.
@@ -92,11 +93,17 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             fov = model.fov_deg if non_repetitive else (float(el.min()), float(el.max()))
             rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
             row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
+            columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
     width = aligned(model.columns if model is not None else columns or _estimate_width(pts, row, height))
     return ScanGrid(row.astype(np.int32), azimuth_columns(pts, width), int(height), width,
                     _row_elevations(row, el, height), source)
+
+
+def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
+    """Columns that make a grid's cells as wide as they are tall: 360° over the row height."""
+    return int(round(360.0 / max((fov_deg[1] - fov_deg[0]) / rows, 1e-3)))
 
 
 def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarray, int, str]:

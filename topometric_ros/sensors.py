@@ -174,7 +174,7 @@ def _models() -> dict[str, SensorModel]:
         SensorModel("HDL-32E", HDL32E, 2176, 10.0, 1.0, 100.0, 0.01, "velodyne"),
         SensorModel("HDL-64E", HDL64E, 2088, 10.0, 1.0, 120.0, 0.01, "velodyne"),
         SensorModel("XT32", XT32, 2000, 10.0, 0.05, 120.0, 0.01, "hesai"),
-        SensorModel("Mid-360", (), 512, 10.0, 0.1, 70.0, 0.02, "livox", pattern="non_repetitive",
+        SensorModel("Mid-360", (), 200, 10.0, 0.1, 70.0, 0.02, "livox", pattern="non_repetitive",
                     fov_deg=(-7.0, 52.0), grid_rows=32, points_per_scan=20000),
         _ouster("1", OS1_32G, 32, 120.0, 0.015, "G"),
     ]
