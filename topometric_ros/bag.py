@@ -9,7 +9,7 @@ import json
 from functools import lru_cache
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -40,8 +40,8 @@ def msg_types() -> SimpleNamespace:
     return SimpleNamespace(**{name.rsplit("/", 1)[-1]: cls for name, cls in t.items()})
 
 
-def topics(path: str | Path) -> dict[str, tuple[str, int]]:
-    """{topic: (msgtype, message count)} of a bag."""
+def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]]:
+    """{topic: (msgtype, message count)} of a bag (or of several, as one)."""
     from rosbags.highlevel import AnyReader
 
     with _open(path, AnyReader) as reader:
@@ -66,18 +66,22 @@ def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
     return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items())) or "no topics"
 
 
-def _open(path: str | Path, reader_cls: Any) -> Any:
-    path = Path(path)
-    if not path.exists():
-        raise BagError(f"bag not found: {path}")
+def _open(path: str | Path | Sequence[str | Path], reader_cls: Any) -> Any:
+    """A rosbags reader over one bag, or several read as one (their messages merged in time order)."""
+    paths = [Path(p) for p in path] if isinstance(path, (list, tuple)) else [Path(path)]
+    for p in paths:
+        if not p.exists():
+            raise BagError(f"bag not found: {p}")
     try:
-        return reader_cls([path], default_typestore=typestore())
+        return reader_cls(paths, default_typestore=typestore())
     except Exception as e:  # rosbags raises several types for unreadable bags
-        raise BagError(f"cannot open bag {path}: {e}") from e
+        raise BagError(f"cannot open bag {', '.join(map(str, paths))}: {e}") from e
 
 
-def read_messages(path: str | Path, topic_names: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
-    """Yield (topic, receive time ns, deserialised message) in time order, one at a time.
+def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable[str] | None = None
+                  ) -> Iterator[tuple[str, int, Any]]:
+    """Yield (topic, receive time ns, deserialised message) in time order, one at a time, of one bag or of
+    several merged (a list of paths).
 
     ``topic_names`` limits the topics; a named topic missing from the bag raises BagError.
     """

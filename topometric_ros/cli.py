@@ -37,7 +37,8 @@ def _sim_config(args: argparse.Namespace, scene: str):
 
     return SimConfig(scene=scene, layout_seed=args.layout_seed, seed=args.seed, frames=args.frames, rate=args.rate,
                      odom_rate=args.odom_rate, speed=args.speed, drift=DriftSpec.parse(args.drift, args.drift_kind),
-                     storage=args.storage, sensor=args.sensor[0], distortion=not args.no_distortion)
+                     storage=args.storage, sensor=args.sensor[0], distortion=not args.no_distortion,
+                     odometry=args.odometry, clock_jump=args.clock_jump)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -297,6 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sensor", default=[DEFAULT_SENSOR], type=_sensors,
                    help=f"LiDAR model(s) and their driver's cloud layout: a name, a comma list (one set of bags per "
                         f"sensor under OUT/<sensor>/) or 'all'; default {DEFAULT_SENSOR}; known: {', '.join(SENSORS)}")
+    s.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
+                   help="the SLAM's everyday error under the drift: none, or LiDAR-odometry-like (random walk with "
+                        "distance and turning, jitter, corridor slide)")
+    s.add_argument("--clock-jump", type=_floats, default=(), metavar="AT,OFFSET,DURATION",
+                   help="cloud stamps jump by OFFSET s from AT s after the start for DURATION s (a clock fault)")
     s.add_argument("--no-distortion", action="store_true",
                    help="instantaneous sweeps (default: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")

@@ -45,6 +45,7 @@ class ReplayOptions:
     hardware_id: str = ""  # "" = the cloud's frame_id
     plot: bool = True
     progress: bool = True
+    beside: tuple = ()  # more bags read with it, merged in time order (e.g. a sidecar odometry bag)
 
 
 @dataclass
@@ -196,7 +197,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     ref.append(monitor)
     gt_stamps, gt_poses, notes = [], [], []
     error, n_scans, first, last = "", 0, None, None
-    opt, total = _resolve_topics(bag_path, opt, notes)
+    source = [bag_path, *opt.beside] if opt.beside else bag_path
+    opt, total = _resolve_topics(source, opt, notes)
     wall0, cpu0 = time.perf_counter(), time.thread_time()
     stale_reported = False
     from tqdm import tqdm
@@ -204,7 +206,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     bar = tqdm(total=total, desc="replay", unit="scan", disable=not opt.progress, leave=False)
     try:
         wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
-        for topic, t_ns, msg in read_bag(bag_path, wanted, notes):
+        messages = bag.read_messages(source, sorted(wanted & set(bag.topics(source)))) if opt.beside \
+            else read_bag(bag_path, wanted, notes)
+        for topic, t_ns, msg in messages:
             t = t_ns * 1e-9
             first = t if first is None else first
             last = t

@@ -1,4 +1,10 @@
-"""Estimated poses from ground truth: drift episodes or per-pose noise, modes r, t, rt and a scale.
+"""Estimated poses from ground truth: the SLAM front end's everyday error, then drift episodes or per-pose
+noise (modes r, t, rt and a scale) on top.
+
+Everyday error (``odometry_error``, SimConfig.odometry "lo"): what a LiDAR odometry makes while it is working
+- drift rates per metre driven that wander slowly, a share of every turn, per-scan jitter that does not
+accumulate, and, in degenerate corridors (straight runs between close walls), a slide of a few per cent
+along the travel direction. The error grows with distance and turning, not with time.
 
 Drift episodes imitate a SLAM front end losing track: inside an episode every odometry step gets an
 extra body-frame rotation (about an axis fixed per episode) and translation (direction fixed per
@@ -110,6 +116,59 @@ def estimated_poses(stamps: np.ndarray, gt: np.ndarray, spec: DriftSpec, episode
     for i, inc in enumerate(increments):
         est[i + 1] = est[i] @ inc
     return est
+
+
+@dataclass(frozen=True)
+class OdometryError:
+    """The everyday error of a working LiDAR odometry (KITTI-like magnitudes: ~0.5 % of distance, a few
+    hundredths of a degree per metre), as drift RATES per metre that wander slowly with the distance driven
+    (Ornstein-Uhlenbeck: stationary std ``*_rate``, correlation length ``wander_m``), a share of every turn
+    (``turn_fraction``), per-pose jitter that does not accumulate, and a slide along the travel direction on
+    straight runs in corridors (``corridor_slide``: std of the fraction of forward motion gained or lost;
+    corridor: clearance below ``corridor_clearance_m``)."""
+
+    trans_rate: float = 0.005  # m per m, each axis
+    rot_rate_deg: float = 0.01  # deg per m, each axis
+    turn_fraction: float = 0.003  # of each turn's angle, about the turn axis
+    wander_m: float = 20.0
+    jitter_m: float = 0.002
+    jitter_deg: float = 0.02
+    corridor_slide: float = 0.02
+    corridor_clearance_m: float = 1.6
+
+
+def odometry_error(stamps: np.ndarray, gt: np.ndarray, rng: np.random.Generator, err: OdometryError = OdometryError(),
+                   corridor: np.ndarray | None = None) -> np.ndarray:
+    """(M, 4, 4) poses of a working LiDAR odometry for ground-truth poses gt (M, 4, 4) at sorted stamps (s):
+    each step's motion gets a body-frame error = the current drift rates × its distance + turn_fraction of its
+    turn, the forward motion on ``corridor`` steps ((M - 1,) bool) slides by a per-run fraction, and each
+    output pose gets independent jitter."""
+    steps = geometry.inverse(gt[:-1]) @ gt[1:]
+    dist = np.linalg.norm(steps[:, :3, 3], axis=1)
+    turn = geometry.matrix_to_rotvec(steps[:, :3, :3])
+    rates = _wander(dist, err.wander_m, rng) * np.array([err.trans_rate] * 3 + [np.radians(err.rot_rate_deg)] * 3)
+    trans = rates[:, :3] * dist[:, None]
+    rot = rates[:, 3:] * dist[:, None] + err.turn_fraction * turn
+    if corridor is not None and corridor.any():
+        trans += np.where(corridor[:, None], rng.normal(0.0, err.corridor_slide) * steps[:, :3, 3], 0.0)
+    est = np.empty_like(gt)
+    est[0] = gt[0]
+    increments = steps @ geometry.make_pose(geometry.rotvec_to_matrix(rot), trans)
+    for i, inc in enumerate(increments):
+        est[i + 1] = est[i] @ inc
+    jitter = geometry.noise_transforms(len(est), np.radians(err.jitter_deg), err.jitter_m, rng)
+    return est @ jitter
+
+
+def _wander(dist: np.ndarray, length: float, rng: np.random.Generator) -> np.ndarray:
+    """(n, 6) unit-variance Ornstein-Uhlenbeck processes over the distance driven (correlation ``length`` m)."""
+    out = np.empty((len(dist), 6))
+    x = rng.standard_normal(6)
+    for i, d in enumerate(dist):
+        a = np.exp(-d / length)
+        x = a * x + np.sqrt(1 - a * a) * rng.standard_normal(6)
+        out[i] = x
+    return out
 
 
 def in_episode(stamps: np.ndarray, episodes: list[Episode]) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 from .. import bag, classes, geometry
 from ..cloud import DATATYPES as DATATYPES_NP, make_layout_cloud, rosbags_types
 from ..sensors import DEFAULT_SENSOR, SensorModel, sensor
-from .drift import DriftSpec, estimated_poses, plan_episodes
+from .drift import DriftSpec, OdometryError, estimated_poses, odometry_error, plan_episodes
 from .lidar import Lidar, Scan, firings_per_sweep
 from .scenes import make_scene
 from .trajectory import random_trajectory
@@ -48,6 +48,8 @@ class SimConfig:
     storage: str = "mcap"
     sensor: str = DEFAULT_SENSOR  # a sensors.SENSORS name
     distortion: bool = True  # each firing at its own time along the trajectory (False: instantaneous sweeps)
+    odometry: str = "ideal"  # the SLAM's everyday error under the drift: ideal (none) | lo (LiDAR-odometry-like)
+    clock_jump: tuple = ()  # (at s after the start, offset s, duration s): cloud stamps jump by offset meanwhile
 
     @property
     def extrinsic(self) -> np.ndarray:
@@ -72,7 +74,7 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
     odom_t = START_TIME - 0.4 + 0.013 + np.arange(int((duration - 0.2) * cfg.odom_rate)) / cfg.odom_rate
     gt_odom = traj.poses_at(odom_t)
     episodes = plan_episodes(START_TIME, START_TIME + cfg.frames / cfg.rate, cfg.drift, rng)
-    est_odom = estimated_poses(odom_t, gt_odom, cfg.drift, episodes, rng)
+    est_odom = estimated_poses(odom_t, _everyday(cfg, scene, odom_t, gt_odom), cfg.drift, episodes, rng)
     scan_t = START_TIME + np.arange(cfg.frames) / cfg.rate
     model = sensor(cfg.sensor)
     lidar = Lidar(scene, model)
@@ -90,7 +92,8 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
                 w.write("/odom", odom_t[k], bag.make_odometry(odom_t[k], est_odom[k], MAP_FRAME, BASE_FRAME))
                 w.write("/odom_gt", odom_t[k], bag.make_odometry(odom_t[k], gt_odom[k], MAP_FRAME, BASE_FRAME))
                 k += 1
-            w.write("/points", received, driver_cloud(scan, model, float(stamp), t0, types))
+            shift = _clock_shift(cfg, float(stamp))
+            w.write("/points", received, driver_cloud(scan, model, float(stamp) + shift, t0 + shift, types))
             hit = np.isfinite(scan.points[:, 0])
             counts += np.bincount(scan.label[hit], minlength=classes.NUM_CLASSES)
             n_points.append(int(hit.sum()))
@@ -111,6 +114,33 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
     }
     (out / "truth.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _everyday(cfg: SimConfig, scene, stamps: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Ground truth with the SLAM's everyday error of ``cfg.odometry`` (sim/drift.py odometry_error; its own
+    random stream, so the rest of the bag is the same as with ideal odometry)."""
+    if cfg.odometry == "ideal":
+        return gt
+    if cfg.odometry != "lo":
+        raise ValueError(f"odometry must be ideal or lo, got {cfg.odometry!r}")
+    from .trajectory import free_space
+
+    err = OdometryError()
+    space = free_space(scene, resolution=0.4 if scene.area > 2000 else 0.2)
+    xy = gt[:-1, :2, 3]
+    cell = np.clip(np.rint((xy - space.origin) / space.resolution).astype(int), 0, np.array(space.free.shape[::-1]) - 1)
+    narrow = space.clearance[cell[:, 1], cell[:, 0]] < err.corridor_clearance_m
+    steps = geometry.inverse(gt[:-1]) @ gt[1:]
+    straight = np.degrees(geometry.rotation_angle(steps[:, :3, :3])) / np.diff(stamps) < 5.0
+    return odometry_error(stamps, gt, np.random.default_rng([cfg.seed, 7]), err, narrow & straight)
+
+
+def _clock_shift(cfg: SimConfig, stamp: float) -> float:
+    """s added to a cloud's stamps by the simulated clock fault at ``stamp`` (0 outside it)."""
+    if not cfg.clock_jump:
+        return 0.0
+    at, offset, duration = cfg.clock_jump
+    return float(offset) if START_TIME + at <= stamp < START_TIME + at + duration else 0.0
 
 
 def _sweep(lidar: Lidar, traj, cfg: SimConfig, stamp: float, index: int, rng: np.random.Generator
