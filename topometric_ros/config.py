@@ -93,6 +93,7 @@ class HealthConfig:
     """Drift alarms (health.py)."""
 
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
+    fail_after_s: float = 1.0  # s, scans arrive but every one fails (bad layout, no pose, ...) for this long -> ERROR with the reason
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
     warn_sigma: float = 6.0  # robust z above the baseline median -> WARN (`topometric alarms --calibrate`: every calibration group, floor plans 7, 9, 11-14)
@@ -131,7 +132,8 @@ CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.dev
 
 
 def _unwrap_ros(doc: Mapping[str, Any]) -> Mapping[str, Any]:
-    """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters."""
+    """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters; the one top key may be any
+    node name or pattern ('topometric_monitor', '/robot1/topometric_monitor', '/**')."""
     if len(doc) == 1:
         (inner,) = doc.values()
         if isinstance(inner, Mapping) and "ros__parameters" in inner:
