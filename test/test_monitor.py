@@ -430,3 +430,20 @@ def test_malformed_clouds_and_missing_poses_are_failures_too():
     m2.flush()
     assert m2.counters["dropped_no_pose"] == 12
     assert "no odometry within" in m2.check(1002.4)[1] and "dropped_no_pose 12" in m2.check(1002.4)[1]
+
+
+def test_stamps_going_back_do_not_end_a_failure_streak_while_the_receive_clock_goes_on():
+    """Odometry stamps that keep going backwards (time resets) while every scan fails: the receive clock
+    (node clock) goes on, so the streak stands and the check says ERROR; a clock that goes back with
+    them (sim time reset) forgets the streak."""
+    m = Monitor(config(**{"segmentation.mode": "labels", "health.fail_after_s": 1.0}))
+    for k in range(15):
+        t, r = 100.0 + k / 10, 500.0 + k / 10
+        m.add_pose(t - 0.05, base_pose(t), received=r)
+        m.add_pose(t + 0.15, base_pose(t), received=r)
+        m.add_scan(t, floor_points(), received=r)
+    m.flush()
+    assert m.counters["time_resets"] >= 10 and m.counters["scan_errors"] >= 1
+    assert m.check(501.5)[0] == "ERROR"
+    m.add_pose(50.0, base_pose(50.0), received=20.0)  # sim time jumped back with the stamps
+    assert m.failing_since is None

@@ -124,7 +124,8 @@ class Config:
 
 #: Keys of config/topometric.yaml that belong to the ROS node (topics, QoS, ...), not to Config: skipped here.
 NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
-                   "publish_markers", "diagnostics_period_s", "use_sim_time")
+                   "publish_markers", "scan_rate_min_hz", "scan_rate_max_hz", "latency_warn_s", "latency_error_s",
+                   "diagnostic_updater.period", "diagnostic_updater.use_fqn", "use_sim_time")
 #: Leaves that take one of a few strings.
 CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
            "segmentation.backend": ("onnxruntime", "eager"),

@@ -301,7 +301,7 @@ class Monitor:
             self.count("duplicate_poses")
             return False
         if status == "backwards":
-            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}")
+            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}", self.last_pose_received)
         self._resolve_pending()
         return True
 
@@ -327,7 +327,7 @@ class Monitor:
             if scan.stamp == self._last_scan_stamp:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
                 return False
-            self._time_reset(f"scan stamp went backwards to {stamp:.3f}")
+            self._time_reset(f"scan stamp went backwards to {stamp:.3f}", clock)
         self._last_scan_stamp = scan.stamp
         self._pending.append(scan)
         while len(self._pending) > MAX_PENDING:
@@ -362,12 +362,16 @@ class Monitor:
         return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
                      time.perf_counter(), received)
 
-    def _time_reset(self, why: str) -> None:
-        """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself."""
+    def _time_reset(self, why: str, now: float | None) -> None:
+        """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself.
+        Failure-check times later than ``now`` (the receive clock went back too) are forgotten."""
         self.count("time_resets")
         self.last_error = why
-        with self._lock:  # times of the old timeline would be in the future of the new one
-            self.last_processed = self.failing_since = None
+        with self._lock:
+            if now is not None and self.last_processed is not None and self.last_processed > now:
+                self.last_processed = None
+            if now is not None and self.failing_since is not None and self.failing_since > now:
+                self.failing_since = None
         if self._pending:
             self.count("dropped_no_pose", len(self._pending))
             self._pending.clear()
