@@ -244,8 +244,8 @@ def drift_run(ros_env, drift_bag, tmp_path_factory):
             10, node)
         code, exit_s = node.sigint()
         live = windows_of(listener)
-        (tmp / "windows.json").write_text(json.dumps({"live": [{k: w[k] for k in ("end", "level")} for w in live],
-                                                      "replay": [{k: w[k] for k in ("end", "level")} for w in replayed]}))
+        brief = lambda ws: [{"end": w["end"], "level": w["level"]} for w in ws]  # noqa: E731
+        (tmp / "windows.json").write_text(json.dumps({"live": brief(live), "replay": brief(replayed)}))
         return {"replay": replayed, "live": live, "summary": summary, "listener": listener,
                 "played": played, "t_play": t_play, "stale": stale, "exit": (code, exit_s), "log": node.log(),
                 "statuses": statuses(listener), "markers": listener.messages(f"/{NODE}/planes")}
@@ -310,7 +310,8 @@ def test_statuses_follow_diagnostic_updater_conventions(drift_run):
     assert {s.hardware_id for _, _, s in sts} >= {"velodyne"}
     names = {s.name for _, arr in drift_run["listener"].messages("/diagnostics") for s in arr.status}
     assert {CONSISTENCY, f"{NODE}: scan rate", f"{NODE}: latency"} <= names
-    rates = [float(values(s)["Actual frequency (Hz)"]) for _, _, s in statuses(drift_run["listener"], f"{NODE}: scan rate")
+    rate_sts = statuses(drift_run["listener"], f"{NODE}: scan rate")
+    rates = [float(values(s)["Actual frequency (Hz)"]) for _, _, s in rate_sts
              if level(s) == "OK" and "Actual frequency (Hz)" in values(s)]
     assert rates and abs(np.median(rates) - 5.0) < 0.5, rates
     lat = [float(values(s)["max_s"]) for _, _, s in statuses(drift_run["listener"], f"{NODE}: latency")
@@ -387,9 +388,10 @@ class Feeder:
 
     def wait_matched(self, timeout=20.0):
         end = time.monotonic() + timeout
-        while time.monotonic() < end and not (self.points.get_subscription_count() and self.odom.get_subscription_count()):
+        matched = lambda: self.points.get_subscription_count() and self.odom.get_subscription_count()  # noqa: E731
+        while time.monotonic() < end and not matched():
             time.sleep(0.05)
-        assert self.points.get_subscription_count() and self.odom.get_subscription_count(), "node not subscribed"
+        assert matched(), "the node did not subscribe to /points and /odom"
 
     def scan(self, points, pose, labels=None, now=None):
         """Odometry just before and after ``now`` (s, wall), then the cloud stamped ``now``."""

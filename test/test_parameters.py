@@ -40,7 +40,8 @@ def test_unknown_keys_are_named():
 
 
 def test_config_from_node_values_converts_and_checks():
-    cfg = parameters.config_from({"health.stale_after_s": 7, "window.size": 10, "window.extrinsic": (0, 0, 1, 0, 0, 0, 1)})
+    cfg = parameters.config_from({"health.stale_after_s": 7, "window.size": 10,
+                                  "window.extrinsic": (0, 0, 1, 0, 0, 0, 1)})
     assert cfg.health.stale_after_s == 7.0 and isinstance(cfg.health.stale_after_s, float)
     assert cfg.window.size == 10 and cfg.window.extrinsic == [0, 0, 1, 0, 0, 0, 1]
     with pytest.raises(ValueError, match="stale_after_s"):
