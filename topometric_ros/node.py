@@ -116,6 +116,7 @@ class MonitorNode(Node):
             from .replay import load_segmenter
 
             segmenter = load_segmenter(self.config)
+        from .segmentation import infer  # noqa: F401 - import torch now, not when the first scan arrives (~1 s)
         self.p = p
         self._lock = threading.Lock()
         self._last_window = None  # (level, message, values) of the newest window
