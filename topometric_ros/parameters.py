@@ -123,7 +123,7 @@ def markdown_table() -> str:
         else:
             allowed = " \\| ".join(ALL_CHOICES.get(name, ()))
         shown = "''" if default == "" else str(default).lower() if isinstance(default, bool) else default
-        rows.append(f"| `{name}` | `{shown}` | {allowed} | {texts.get(name, '').replace('|', '/')} |")
+        rows.append(f"| `{name}` | `{shown}` | {allowed} | {texts.get(name, '').replace('|', chr(92) + '|')} |")
     return "\n".join(rows) + "\n"
 
 
