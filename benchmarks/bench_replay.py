@@ -53,7 +53,8 @@ def _network_available() -> bool:
 
 def _bag(frames: int) -> Path:
     from topometric_ros.sim.drift import DriftSpec
-    from topometric_ros.sim.writer import SimConfig, load_truth, simulate
+    from topometric_ros.bag import load_truth
+    from topometric_ros.sim.writer import SimConfig, simulate
 
     path = OUT / "bags" / f"garage_rt15_{frames}"
     truth = load_truth(path)

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from topometric_ros.alarms import SPLITS, episode_hits, plan_bags, reassess, score
+from topometric_ros.experiments.alarms import SPLITS, episode_hits, plan_bags, reassess, score
 from topometric_ros.config import HealthConfig, load_config
 from topometric_ros.monitor import Monitor
 from topometric_ros.pipeline import ProcessedScan, WindowResult
@@ -97,7 +97,7 @@ def test_score_counts_false_warns_per_ten_minutes_and_detections():
 
 
 def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():
-    from topometric_ros.alarms import choose_sigma
+    from topometric_ros.experiments.alarms import choose_sigma
 
     rates = {2.0: 30.0, 2.5: 2.0, 3.0: 0.0, 3.5: 0.0, 4.0: 0.4, 4.5: 0.0}
     sweep = [{"warn_sigma": s, "false_warns_per_10min": r} for s, r in rates.items()]
@@ -108,7 +108,7 @@ def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():
 
 
 def test_rate_margins_span_drift_free_maxima_and_the_weakest_episode():
-    from topometric_ros.alarms import rate_margins
+    from topometric_ros.experiments.alarms import rate_margins
     from topometric_ros.sim.drift import DriftSpec
     from topometric_ros.sim.writer import SimConfig
 
@@ -130,7 +130,7 @@ def test_rate_margins_span_drift_free_maxima_and_the_weakest_episode():
 
 
 def test_choose_sigma_can_hold_every_group_to_the_target():
-    from topometric_ros.alarms import choose_sigma
+    from topometric_ros.experiments.alarms import choose_sigma
 
     pooled = {3.0: 0.3, 3.5: 0.2, 4.0: 0.0, 4.5: 0.0}
     worst = {3.0: 1.2, 3.5: 0.9, 4.0: 0.0, 4.5: 0.0}  # one floor plan's false alarms hidden in the pool
@@ -144,8 +144,8 @@ def test_network_replays_are_keyed_by_the_weights_file_contents(tmp_path):
     import hashlib
     import shutil
 
-    from topometric_ros.alarms import _weights_digest
-    from topometric_ros.segmentation.infer import SHIPPED
+    from topometric_ros.experiments.alarms import _weights_digest
+    from topometric_ros.segmentation.checkpoint import SHIPPED
 
     assert _weights_digest(load_config(overrides={"segmentation.mode": "labels"})) is None
     shipped = _weights_digest(load_config(overrides={"segmentation.mode": "network"}))

@@ -54,9 +54,11 @@ def test_simulated_bag_decodes_with_independent_mcap_reader(office_bag):
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             if channel.topic == "/points" and seen["/points"] == 1:
                 assert schema.name == "sensor_msgs/msg/PointCloud2"
-                assert [f.name for f in decoded.fields] == ["x", "y", "z", "intensity", "ring", "label"]
-                assert decoded.point_step == 20 and decoded.header.frame_id == "velodyne"
-                assert len(decoded.data) == decoded.width * decoded.point_step
+                # velodyne_pointcloud's organised XYZIRT (packed, 22 bytes) + the simulator's label byte
+                assert [f.name for f in decoded.fields] == ["x", "y", "z", "intensity", "ring", "time", "label"]
+                assert decoded.point_step == 23 and decoded.header.frame_id == "velodyne"
+                assert (decoded.height, decoded.width) == (1800, 32)  # one row per firing, one column per ring
+                assert len(decoded.data) == decoded.height * decoded.width * decoded.point_step
             if channel.topic == "/tf_static":
                 assert decoded.transforms[0].child_frame_id == "velodyne"
                 assert decoded.transforms[0].transform.translation.z == pytest.approx(1.0)

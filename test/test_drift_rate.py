@@ -156,7 +156,8 @@ def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_pat
     from topometric_ros.config import load_config
     from topometric_ros.replay import ReplayOptions, replay
     from topometric_ros.sim.drift import DriftSpec
-    from topometric_ros.sim.writer import SimConfig, load_truth, simulate
+    from topometric_ros.bag import load_truth
+    from topometric_ros.sim.writer import SimConfig, simulate
 
     bag = tmp_path / mode
     simulate(SimConfig(scene="office1", frames=160, rate=5.0, seed=21, drift=DriftSpec(mode, 1.0)), bag, progress=False)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from topometric_ros.cli import main
-from topometric_ros.evaluate import METRICS, PLANE_METRICS, ExperimentSpec, _perturb
+from topometric_ros.experiments.evaluate import METRICS, PLANE_METRICS, ExperimentSpec, _perturb
 
 
 def _rows(path):

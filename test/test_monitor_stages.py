@@ -36,5 +36,5 @@ def test_the_two_stages_compose_to_process_scan():
         for a, b in zip(staged.plane_arrays(), whole.plane_arrays()):
             np.testing.assert_array_equal(a, b)
         assert len(staged.labels) < len(f.points)  # the voxel step ran in stage 1
-        assert set(staged.timings) == {"voxel", "segment", "planes", "total"}
-        assert staged.timings["total"] == pytest.approx(sum(staged.timings[k] for k in ("voxel", "segment", "planes")))
+        assert set(staged.timings) == {"grid", "voxel", "segment", "planes", "total"}
+        assert staged.timings["total"] == pytest.approx(sum(staged.timings[k] for k in ("grid", "voxel", "segment", "planes")))

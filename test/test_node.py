@@ -259,7 +259,7 @@ def drift_run(ros_env, drift_bag, tmp_path_factory):
 def test_drift_bag_alarms_inside_every_episode_and_ok_elsewhere(drift_run):
     """Every episode alarmed (WARN/ERROR) within 2 windows of its start; after the baseline, every window
     clear of the episodes (2 s either side) is OK."""
-    from topometric_ros.alarms import episode_hits
+    from topometric_ros.experiments.alarms import episode_hits
 
     live, episodes = drift_run["live"], drift_run["summary"]["episodes"]
     assert len(live) >= 36, f"only {len(live)} of 40 windows reached /diagnostics"

@@ -78,3 +78,11 @@ def test_docs_parameter_table_is_current():
     begin, end = "<!-- parameters:begin -->\n", "<!-- parameters:end -->"
     assert begin in text and end in text
     assert text.split(begin, 1)[1].split(end, 1)[0] == parameters.markdown_table()
+
+
+def test_a_bare_on_or_off_is_a_choice_not_a_type_error():
+    """YAML (and rcl's parameter parser) reads a bare on / off as a boolean: accepted for on|off choices."""
+    parameters.check("sensor.deskew", True)
+    assert parameters.config_from({"sensor.deskew": False}).sensor.deskew == "off"
+    with pytest.raises(ValueError, match="segmentation.mode"):
+        parameters.check("segmentation.mode", True)

@@ -125,6 +125,7 @@ def test_replay_survives_a_bag_of_bad_input_and_counts_each_case(office_bag, tmp
     """Copy the office bag, injecting: a malformed cloud, a cloud of NaN/inf, an empty cloud, a duplicate
     scan, odometry with a non-unit (x3) and a zero quaternion, and a backwards jump of all stamps."""
     from topometric_ros import bag
+    from topometric_ros.cloud import make_cloud, rosbags_types, stamp_seconds
 
     bag_path, _ = office_bag
     bad = tmp_path / "bad"
@@ -141,9 +142,10 @@ def test_replay_survives_a_bag_of_bad_input_and_counts_each_case(office_bag, tmp
                     broken = copy.copy(msg)
                     broken.point_step = 7  # fields beyond point_step
                     w.write(topic, t + 0.001, broken)
-                if n_points == 5:
-                    nan = copy.copy(msg)
-                    nan.data = np.full(len(msg.data) // 4, np.nan, np.float32).view(np.uint8)
+                if n_points == 5:  # every point NaN (x, y, z), same stamp
+                    nans = np.full(1000, np.nan, np.float32)
+                    nan = make_cloud({"x": nans, "y": nans, "z": nans}, stamp_seconds(msg.header), "velodyne",
+                                     rosbags_types(bag.typestore()))
                     w.write(topic, t + 0.001, nan)
                 if n_points == 6:
                     empty = copy.copy(msg)

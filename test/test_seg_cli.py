@@ -82,7 +82,7 @@ def test_train_with_validation_keeps_the_best_epoch_and_stops_at_the_time_budget
 
 
 def test_train_from_weights_starts_there_and_records_the_parent(trained, office_bag, tmp_path, capsys):
-    from topometric_ros.segmentation.infer import load_weights
+    from topometric_ros.segmentation.checkpoint import load_weights
 
     _, out = trained
     parent = out / "w" / "rangenet.pt"

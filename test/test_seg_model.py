@@ -12,10 +12,10 @@ import torch
 
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig, load_config
-from topometric_ros.segmentation.infer import SegmentationError, Segmenter, load_weights
+from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
+from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
-from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, lovasz_softmax, model_card,
-                                               save_weights, state_digest)
+from topometric_ros.segmentation.train import TrainConfig, augment, class_weights, lovasz_softmax, model_card
 from topometric_ros.sim.frames import simulated_frames
 
 

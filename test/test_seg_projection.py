@@ -6,8 +6,8 @@ import pytest
 
 from topometric_ros import classes as C
 from topometric_ros.segmentation.metrics import confusion, iou_per_class, miou
-from topometric_ros.segmentation.projection import (CHANNELS, HEIGHT, WIDTH, ProjectionError, project,
-                                                     project_labels, rows_from_elevation)
+from topometric_ros.grid import scan_grid
+from topometric_ros.segmentation.projection import CHANNELS, ProjectionError, image_shape, project, project_labels
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -19,39 +19,57 @@ def scan():
 
 def test_simulated_scan_fills_one_pixel_per_point_and_reads_back(scan):
     image, proj = project(scan.points, scan.ring, scan.intensity)
-    assert image.shape == (len(CHANNELS), HEIGHT, WIDTH)
-    assert int(image[CHANNELS.index("valid")].sum()) == len(scan.points)  # no two points share a pixel
-    np.testing.assert_array_equal(proj.unproject(image[1:4]).T, scan.points)
-    np.testing.assert_array_equal(proj.unproject(image[4]), scan.intensity)
-    np.testing.assert_allclose(proj.unproject(image[0]), np.linalg.norm(scan.points, axis=1), rtol=1e-6)
+    assert image.shape == (1, len(CHANNELS), 32, 1800)  # a VLP-32C: one image of its 32 beams
+    assert int(image[:, CHANNELS.index("valid")].sum()) == len(scan.points)  # no two points share a pixel
+    np.testing.assert_array_equal(proj.unproject(np.moveaxis(image[:, 1:4], 1, 0)).T, scan.points)
+    np.testing.assert_array_equal(proj.unproject(image[:, 4]), scan.intensity)
+    np.testing.assert_allclose(proj.unproject(image[:, 0]), np.linalg.norm(scan.points, axis=1), rtol=1e-6)
     np.testing.assert_array_equal(proj.unproject(project_labels(proj, scan.labels)), scan.labels)
 
 
 def test_rows_from_elevation_match_the_ring_field(scan):
-    np.testing.assert_array_equal(rows_from_elevation(scan.points), scan.ring)
     _, with_ring = project(scan.points, scan.ring)
-    _, without = project(scan.points)
+    _, without = project(scan.points)  # rows from the scan's own elevation clusters
     np.testing.assert_array_equal(with_ring.flat, without.flat)
 
 
+@pytest.mark.parametrize("beams, images, rows", [(16, 1, 16), (32, 1, 32), (40, 2, 20), (64, 2, 32), (128, 4, 32)])
+def test_many_beams_are_split_into_interleaved_images_of_at_most_32_rows(beams, images, rows):
+    """Beam b of B goes to image b % k, row b // k: every image spans the whole field of view."""
+    el = np.radians(np.linspace(-20, 20, beams))
+    az = np.radians(np.arange(0, 360, 0.5))
+    e, a = np.meshgrid(el, az, indexing="ij")
+    pts = (10 * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)).reshape(-1, 3)
+    beam = np.repeat(np.arange(beams), len(az))
+    grid = scan_grid(pts.astype(np.float32), beam)
+    assert image_shape(grid) == (images, rows, 720)
+    image, proj = project(pts, grid)
+    assert image.shape == (images, len(CHANNELS), rows, 720)
+    valid = image[:, CHANNELS.index("valid")]
+    assert int(valid.sum()) == len(pts)
+    top = np.flatnonzero(beam == beams - 1)[0]
+    k = images
+    assert proj.flat[top] // (rows * 720) == (beams - 1) % k  # the image of the top beam
+    np.testing.assert_allclose(proj.unproject(image[:, 3]), pts[:, 2], atol=1e-5)
+
+
 def test_azimuth_wraps_around():
-    az = np.radians([0.0, 359.95, -0.05, 180.0, 90.0, 0.2, -0.2])
+    az = np.radians([0.05, 359.95, -0.05, 180.05, 90.04, 0.25, -0.25])
     pts = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], 1).astype(np.float32) * 5
-    _, proj = project(pts, np.zeros(len(pts), np.uint16))
-    assert proj.col.tolist() == [0, 0, 0, 900, 450, 1, WIDTH - 1]
+    grid = scan_grid(pts, np.zeros(len(pts), np.int64), columns=1800)
+    assert grid.col.tolist() == [0, 0, 0, 900, 450, 1, 1799]
 
 
 def test_empty_pixels_are_zero_and_ignored_in_labels(scan):
-    image, proj = project(scan.points[:10], scan.ring[:10])
-    assert image[:, image[-1] == 0].max() == 0
+    grid = scan_grid(scan.points, scan.ring)
+    image, proj = project(scan.points[:10], grid.subset(np.arange(10)))
+    assert image[:, :, image[0, -1] == 0].max() == 0
     labels = project_labels(proj, np.full(10, C.WALL, np.uint8))
-    assert (labels == C.WALL).sum() == 10 and (labels == 255).sum() == HEIGHT * WIDTH - 10
+    assert (labels == C.WALL).sum() == 10 and (labels == 255).sum() == 32 * 1800 - 10
 
 
 def test_bad_input_raises_projection_error(scan):
-    with pytest.raises(ProjectionError, match="ring id 40"):
-        project(scan.points[:3], np.array([0, 1, 40], np.uint16))
-    with pytest.raises(ProjectionError, match="ring must be"):
+    with pytest.raises(ProjectionError, match="grid / ring must have"):
         project(scan.points[:3], np.array([0, 1], np.uint16))
     with pytest.raises(ProjectionError, match="intensity must be"):
         project(scan.points[:3], None, np.ones(4, np.float32))

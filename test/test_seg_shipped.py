@@ -7,7 +7,8 @@ import numpy as np
 
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig
-from topometric_ros.segmentation.infer import SHIPPED, Segmenter
+from topometric_ros.segmentation.checkpoint import SHIPPED
+from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.metrics import confusion, miou
 from topometric_ros.sim.frames import simulated_frames
 

@@ -5,6 +5,7 @@ message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose c
 """
 from __future__ import annotations
 
+import json
 from functools import lru_cache
 from pathlib import Path
 from types import SimpleNamespace
@@ -45,6 +46,24 @@ def topics(path: str | Path) -> dict[str, tuple[str, int]]:
 
     with _open(path, AnyReader) as reader:
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+
+
+def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = "", default: str = "",
+               exclude: Iterable[str] = ()) -> tuple[str, str]:
+    """(topic, note): ``given`` when the bag has it; else the bag's only topic of ``msgtype`` (not in
+    ``exclude``), with a note saying so; else ``given`` or ``default`` as it is (the caller reports it missing)."""
+    if given and given in topics:
+        return given, ""
+    of_type = [t for t, (kind, _) in sorted(topics.items()) if kind == msgtype and t not in set(exclude)]
+    if len(of_type) == 1 and (given or default) not in topics:
+        wanted = f"{given} is not in the bag" if given else f"no {msgtype.rsplit('/', 1)[-1]} topic named"
+        return of_type[0], f"{wanted}; using its only {msgtype} topic {of_type[0]}"
+    return given or default, ""
+
+
+def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
+    """'/a (type, n messages), ...' for a topic listing."""
+    return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items())) or "no topics"
 
 
 def _open(path: str | Path, reader_cls: Any) -> Any:
@@ -161,3 +180,9 @@ class BagWriter:
             self._conns[topic] = conn
         raw = typestore().serialize_cdr(msg, msg.__msgtype__)
         self._writer.write(conn, int(round(stamp * 1e9)), raw)
+
+
+def load_truth(bag_path: str | Path) -> dict | None:
+    """The truth.json a simulated bag folder carries (settings, drift episodes), or None for other bags."""
+    p = Path(bag_path) / "truth.json"
+    return json.loads(p.read_text()) if p.exists() else None

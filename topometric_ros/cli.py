@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from .sensors import DEFAULT_SENSOR, SENSORS
+
 
 def _scenes(text: str) -> list[str]:
     from .sim.scenes import SCENES
@@ -17,30 +19,49 @@ def _scenes(text: str) -> list[str]:
     return names
 
 
+def _sensors(text: str) -> list[str]:
+    """'VLP-16' | 'VLP-16,OS1-128' | 'all' -> sensor model names."""
+    from .sensors import sensor
+
+    if text.strip().lower() == "all":
+        return list(SENSORS)
+    try:
+        return [sensor(t.strip()).name for t in text.split(",") if t.strip()]
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def _sim_config(args: argparse.Namespace, scene: str):
     from .sim.drift import DriftSpec
     from .sim.writer import SimConfig
 
     return SimConfig(scene=scene, layout_seed=args.layout_seed, seed=args.seed, frames=args.frames, rate=args.rate,
                      odom_rate=args.odom_rate, speed=args.speed, drift=DriftSpec.parse(args.drift, args.drift_kind),
-                     storage=args.storage)
+                     storage=args.storage, sensor=args.sensor[0], distortion=not args.no_distortion)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    """One bag, or with --split train/test bags per scene; with several --sensor models, one set per sensor
+    under OUT/<sensor>/."""
+    from dataclasses import replace
+
     from .sim.writer import format_summary, simulate, simulate_split
 
     out = Path(args.out)
-    if args.split:
-        summaries = simulate_split(args.scene, out, _sim_config(args, args.scene[0]), args.train, args.test)
-        for s in summaries:
-            print(f"[{s['split']}] {s['bag']}: {s['frames']} scans, {s['path_length_m']:.0f} m, {s['elapsed_s']:.1f} s")
-        (out / "split.json").write_text(json.dumps(summaries, indent=2))
-        print(f"wrote {len(summaries)} bags under {out} (index: {out / 'split.json'})")
-        return 0
-    if len(args.scene) != 1:
+    if not args.split and len(args.scene) != 1:
         print("error: give one --scene without --split", file=sys.stderr)
         return 2
-    print(format_summary(simulate(_sim_config(args, args.scene[0]), out)))
+    for name in args.sensor:
+        target = out / name if len(args.sensor) > 1 else out
+        cfg = replace(_sim_config(args, args.scene[0]), sensor=name)
+        if not args.split:
+            print(format_summary(simulate(cfg, target)))
+            continue
+        summaries = simulate_split(args.scene, target, cfg, args.train, args.test)
+        for s in summaries:
+            print(f"[{s['split']}] {s['bag']}: {s['frames']} scans, {s['path_length_m']:.0f} m, {s['elapsed_s']:.1f} s")
+        (target / "split.json").write_text(json.dumps(summaries, indent=2))
+        print(f"wrote {len(summaries)} bags under {target} (index: {target / 'split.json'})")
     return 0
 
 
@@ -83,8 +104,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 1 if res.summary["error"] else 0
 
 
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from .inspect import inspect_bag
+
+    config = _monitor_config(args)
+    rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, plot=not args.no_plot)
+    cols = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
+    print(f"segmentation {config.segmentation.mode}; sensor {config.sensor.model or 'read off each cloud'}")
+    print("  ".join(f"{c:>10s}" for c in cols))
+    for r in rows:
+        print("  ".join(f"{str(r.get(c, '')):>10s}" for c in cols) + (f"  ERROR {r['error']}" if "error" in r else ""))
+    print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_<k>.png per scan"))
+    return 1 if rows and all("error" in r for r in rows) else 0
+
+
 def cmd_alarms(args: argparse.Namespace) -> int:
-    from .alarms import calibrate, format_calibration, format_detection, run_detection
+    from .experiments.alarms import calibrate, format_calibration, format_detection, run_detection
 
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
@@ -136,7 +171,7 @@ def _words(text: str) -> tuple:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from .evaluate import ExperimentSpec, run
+    from .experiments.evaluate import ExperimentSpec, run
 
     spec = ExperimentSpec.quick() if args.quick else ExperimentSpec()
     given = {"scenes": args.scenes and tuple(args.scenes), "windows": args.win, "noises": args.noise,
@@ -171,7 +206,7 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     import csv
 
     from .config import load_config
-    from .planes import evaluate_detector
+    from .experiments.plane_quality import evaluate_detector, plot_plane_quality
 
     cfg = load_config(args.config, {"planes.detector": args.detector}).planes
     res = evaluate_detector(args.scenes, args.frames, cfg, args.seed)
@@ -193,32 +228,9 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     for scene, r in res["scenes"].items():
         print(f"{scene:10s} {r['recall']:8.3f} {r['worst_recall']:6.3f} {r['recalled']:5d}/{r['truth']:<5d} "
               f"{r['median_purity']:11.4f} {r['planes_per_scan']:12.1f} {r['ms_per_scan']:8.1f}")
-    _plot_plane_quality(res, stem.with_suffix(".png"))
+    plot_plane_quality(res, stem.with_suffix(".png"))
     print(f"wrote {stem}.json, .csv, .png")
     return 0
-
-
-def _plot_plane_quality(res: dict, path: Path) -> None:
-    from .reports import pyplot
-
-    plt = pyplot()
-
-    scenes = list(res["scenes"])
-    x = range(len(scenes))
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.5))
-    a.bar([i - 0.2 for i in x], [res["scenes"][s]["recall"] for s in scenes], 0.4, label="recall")
-    a.bar([i + 0.2 for i in x], [res["scenes"][s]["median_purity"] for s in scenes], 0.4, label="median purity")
-    a.axhline(0.95, color="k", lw=0.8, ls="--")
-    a.set_ylim(0.8, 1.0)
-    a.set_xticks(list(x), scenes)
-    a.legend(loc="lower right")
-    a.set_title(f"plane quality ({res['detector']})")
-    b.bar(list(x), [res["scenes"][s]["ms_per_scan"] for s in scenes])
-    b.set_xticks(list(x), scenes)
-    b.set_ylabel("ms per scan (median)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -270,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    s = sub.add_parser("simulate", help="simulate a VLP-32C robot run in an indoor scene and write a rosbag2 bag")
+    s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
     s.add_argument("--frames", type=int, default=600, help="scans per bag (default 600)")
     s.add_argument("--rate", type=float, default=5.0, help="scans per second (5 or 10; default 5)")
@@ -282,6 +294,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="trajectory/noise seed")
     s.add_argument("--layout-seed", type=int, default=0, help="floor-plan seed (a new seed is an unseen layout)")
     s.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"))
+    s.add_argument("--sensor", default=[DEFAULT_SENSOR], type=_sensors,
+                   help=f"LiDAR model(s) and their driver's cloud layout: a name, a comma list (one set of bags per "
+                        f"sensor under OUT/<sensor>/) or 'all'; default {DEFAULT_SENSOR}; known: {', '.join(SENSORS)}")
+    s.add_argument("--no-distortion", action="store_true",
+                   help="instantaneous sweeps (default: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")
     s.add_argument("--train", type=int, default=2, help="train trajectories per scene with --split")
     s.add_argument("--test", type=int, default=1, help="test trajectories per scene with --split")
@@ -327,13 +344,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--rate", default="max", help="max (default, every window processed), realtime, or a speed factor")
-    r.add_argument("--points-topic", default="/points")
-    r.add_argument("--odom-topic", default="/odom")
+    r.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one, else /points)")
+    r.add_argument("--odom-topic", default="", help="nav_msgs/Odometry topic of the SLAM estimate (default: the "
+                                                    "bag's only one besides --gt-topic, else /odom)")
     r.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
     r.add_argument("--no-plot", action="store_true")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
+
+    i = sub.add_parser("inspect", help="per-scan stages on a bag's clouds (no odometry needed): layout, grid, "
+                                       "segmentation, planes; a PNG per scan and scans.csv")
+    i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
+    i.add_argument("--out", default="out/inspect", help="output folder")
+    i.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one)")
+    i.add_argument("--every", type=int, default=1, help="every n-th cloud")
+    i.add_argument("--limit", type=int, default=10, help="at most this many clouds")
+    i.add_argument("--no-plot", action="store_true")
+    _add_monitor_args(i)
+    i.set_defaults(func=cmd_inspect)
 
     a = sub.add_parser("alarms", help="drift-alarm detection table on held-out simulated bags (r/t/rt x 1/1.5/2)")
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
@@ -397,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
-        from .segmentation.infer import SegmentationError
+        from .segmentation.checkpoint import SegmentationError
 
         if isinstance(e, (BagError, SegmentationError)):
             print(f"error: {e}", file=sys.stderr)

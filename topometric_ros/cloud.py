@@ -6,8 +6,9 @@ points. Every malformed cloud raises :class:`CloudError` and nothing else.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from types import SimpleNamespace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -100,11 +101,114 @@ def _read_cloud(msg: Any) -> dict[str, np.ndarray]:
 
 
 def xyz(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) float32 points (sensor frame) and the (M,) bool mask of finite points they were taken by."""
+    """(N, 3) float32 points (sensor frame) and the (M,) bool mask of finite points they were taken by.
+    CloudError when x, y or z is not one number per point."""
+    bad = [n for n in "xyz" if fields[n].ndim != 1]
+    if bad:
+        raise CloudError(f"field(s) {'/'.join(bad)} must have count 1, got shape(s) {[fields[n].shape for n in bad]}")
     pts = np.stack([fields["x"], fields["y"], fields["z"]], axis=1)
-    pts = pts.reshape(len(pts), 3) if pts.ndim == 2 else pts[:, :, 0]  # a count>1 x field uses element 0
     finite = np.isfinite(pts).all(axis=1)
     return pts[finite].astype(np.float32, copy=False), finite
+
+
+@dataclass
+class CloudScan:
+    """What a PointCloud2 gives the monitor, for any driver layout (sensors.LAYOUTS or unknown).
+
+    points: (N, 3) float32 sensor frame, the returns only (NaN and all-zero no-return points and points with a
+    bad beam id removed). beam: (N,) int beam id as the cloud gives it (ring field, else the beam axis of an
+    organised cloud), None when it gives none. columns: firings per revolution of an organised cloud, else 0.
+    time: (N,) float32 s relative to the header stamp, None without a usable per-point time field.
+    intensity (N,) float32, labels (N,) uint8 or None. dropped: points removed, by reason (nonfinite,
+    no_return, bad_beam). notes: why a field
+    was not used. layout: the detected driver layout name ('' unknown).
+    """
+
+    stamp: float
+    frame_id: str
+    points: np.ndarray
+    beam: np.ndarray | None
+    columns: int
+    time: np.ndarray | None
+    intensity: np.ndarray | None
+    labels: np.ndarray | None
+    dropped: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    layout: str = ""
+
+
+#: Names a per-point time field goes by (ouster t, velodyne time, hesai/livox timestamp, others).
+TIME_FIELDS = ("t", "time", "timestamp", "time_stamp", "offset_time", "time_offset")
+MAX_SWEEP_S = 1.0  # s, per-point times spanning more than this are not one sweep: not used
+
+
+def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
+    """A PointCloud2 of any layout -> CloudScan (possibly with no points left). ``max_beams`` > 0: beam ids at
+    or above it are bad (a named sensor's beam count; else grid.MAX_BEAMS). CloudError for a malformed cloud."""
+    from .grid import MAX_BEAMS
+    from .sensors import layout_of
+
+    fields = read_cloud(msg)
+    stamp = stamp_seconds(msg.header)
+    pts, keep = xyz(fields)
+    dropped = {"nonfinite": int(len(keep) - len(pts))}  # NaN: ouster-ros' and velodyne's "no return"
+    zero = ~pts.any(axis=1)  # (0, 0, 0): hesai's and livox's "no return"
+    if zero.any():
+        dropped["no_return"] = int(zero.sum())
+        keep[np.flatnonzero(keep)[zero]] = False
+        pts = pts[~zero]
+    height, width = int(msg.height), int(msg.width)
+    beam, notes = _beams(fields, height, width), []
+    columns = max(height, width) if height > 1 and width > 1 else 0  # an organised cloud: firings x beams or v.v.
+    if beam is not None:
+        beam = beam[keep]
+        bad = beam >= (max_beams or MAX_BEAMS)
+        if bad.any():
+            dropped["bad_beam"] = int(bad.sum())
+            keep[np.flatnonzero(keep)[bad]] = False
+            pts, beam = pts[~bad], beam[~bad]
+    time, note = _times(fields, stamp, keep)
+    if note:
+        notes.append(note)
+    per_point = {name: fields[key][keep].astype(dtype, copy=False) if key in fields and fields[key].ndim == 1
+                 else None for name, key, dtype in (("intensity", "intensity", np.float32), ("labels", "label", np.uint8))}
+    layout = layout_of(fields)
+    return CloudScan(stamp, str(getattr(msg.header, "frame_id", "")), pts, beam, columns, time,
+                     per_point["intensity"], per_point["labels"], dropped, notes, layout.name if layout else "")
+
+
+def _beams(fields: Mapping[str, np.ndarray], height: int, width: int) -> np.ndarray | None:
+    """(M,) beam id of every point: the ring field, else the beam axis of an organised cloud (the shorter side:
+    ouster-ros writes beams x columns, velodyne_pointcloud firings x beams), else None."""
+    ring = fields.get("ring")
+    if ring is not None and ring.ndim == 1 and ring.dtype.kind in "iu":
+        return ring.astype(np.int64)
+    if height > 1 and width > 1:
+        index = np.arange(height * width)
+        return index // width if height <= width else index % width
+    return None
+
+
+def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """Per-point time (s, relative to the header stamp) from the first time field there is, whatever its unit
+    and reference (relative s or ns, absolute s or ns), and a note when the field is there but unusable."""
+    name = next((n for n in TIME_FIELDS if n in fields and fields[n].ndim == 1), None)
+    if name is None:
+        return None, ""
+    raw = fields[name][keep]
+    if len(raw) == 0:
+        return None, ""
+    v = raw.astype(np.float64)
+    t = next((v * scale - ref for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
+              if np.abs(v * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
+    if t is None:
+        return None, f"time field {name!r} is neither a time relative to the header stamp nor near it; not used"
+    span = float(np.ptp(t))
+    if span == 0.0:
+        return None, f"time field {name!r} is constant; times from the azimuth instead"
+    if span > MAX_SWEEP_S or np.abs(t).max() > 2 * MAX_SWEEP_S:
+        return None, f"time field {name!r} spans {span:.3g} s, not one sweep; not used"
+    return t.astype(np.float32), ""
 
 
 def pack_cloud(arrays: Mapping[str, np.ndarray], align: int = 1) -> tuple[list[tuple[str, int, int, int]], int, np.ndarray]:
@@ -152,6 +256,30 @@ def make_cloud(arrays: Mapping[str, np.ndarray], stamp: float, frame_id: str, ty
         height=1, width=n,
         fields=[types.PointField(name=nm, offset=o, datatype=dt, count=c) for nm, o, dt, c in fields],
         is_bigendian=False, point_step=point_step, row_step=point_step * n, data=data(buf), is_dense=True)
+
+
+def make_layout_cloud(arrays: Mapping[str, np.ndarray], fields: Sequence[tuple[str, int, int]], point_step: int,
+                      stamp: float, frame_id: str, types: Any, height: int = 1, padding: Sequence[tuple] = (),
+                      is_dense: bool = False) -> Any:
+    """A PointCloud2 with exactly the given layout: ``fields`` ((name, byte offset, datatype), ...) of
+    ``point_step`` bytes, filled from ``arrays`` (name -> (N,) array; a field without an array stays 0),
+    ``padding`` ((offset, float32 value), ...) bytes a driver fills, ``height`` rows of N / height points."""
+    n = len(next(iter(arrays.values())))
+    dtype = np.dtype({"names": [f[0] for f in fields], "offsets": [f[1] for f in fields], "itemsize": point_step,
+                      "formats": ["<" + DATATYPES[f[2]] for f in fields]})
+    out = np.zeros(n, dtype)
+    for name, _, _ in fields:
+        if name in arrays:
+            out[name] = arrays[name]
+    buf = out.view(np.uint8).reshape(n, point_step)
+    for offset, value in padding:
+        buf[:, offset:offset + 4] = np.frombuffer(np.float32(value).tobytes(), np.uint8)
+    width = n // height
+    return types.PointCloud2(
+        header=make_header(stamp, frame_id, types), height=height, width=width,
+        fields=[types.PointField(name=nm, offset=o, datatype=dt, count=1) for nm, o, dt in fields],
+        is_bigendian=False, point_step=point_step, row_step=point_step * width, data=buf.reshape(-1),
+        is_dense=is_dense)
 
 
 def make_header(stamp: float, frame_id: str, types: Any) -> Any:

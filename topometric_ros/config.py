@@ -11,6 +11,8 @@ from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+from .sensors import SENSORS
+
 
 @dataclass
 class WindowConfig:
@@ -26,6 +28,15 @@ class WindowConfig:
     pose_timeout_s: float = 2.0  # s of scan time a scan may wait for odometry before it is dropped
     pose_horizon_s: float = 30.0  # s of odometry kept for the lookup
     extrinsic: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # odom child -> sensor: x y z (m) qx qy qz qw; /tf_static wins when it has it
+
+
+@dataclass
+class SensorConfig:
+    """The LiDAR (sensors.py, grid.py) and motion compensation (deskew.py)."""
+
+    model: str = ""  # a sensors.SENSORS name (VLP-16, OS1-128, XT32, Mid-360, ...); "" = read the layout off each cloud
+    deskew: str = "auto"  # auto: per-point times, else azimuth times for a known spinning driver | on: also unknown sensors | off
+    rate_hz: float = 0.0  # Hz, sweeps per second for azimuth-derived times; 0 = the model's, else 10
 
 
 @dataclass
@@ -58,10 +69,9 @@ class PlaneConfig:
     opening_band: float = 1.0  # m, height above a wall's lowest inlier searched for openings
     opening_min_points: int = 5  # rays through the gap needed to call it an opening
     opening_through: float = 0.2  # ... and at least this fraction of the gap's rays (others hit an occluder)
-    # ring detector: tiles of the ring × azimuth grid
-    azimuth_bins: int = 1800  # azimuth cells per revolution (VLP-32C at 10 Hz: 0.2°)
-    tile_rings: int = 4  # rings per tile
-    tile_columns: int = 6  # azimuth cells per tile
+    # ring detector: tiles of the scan grid (grid.py), sized for a 32-beam, 1800-column grid and scaled to others
+    tile_rings: int = 4  # grid rows per tile per 32 beams
+    tile_columns: int = 6  # azimuth cells per tile per 1800 columns
     tile_levels: int = 4  # quadtree levels: tiles of 1×1 up to 2^(levels-1) × 2^(levels-1) base tiles
     tile_min_points: int = 8  # fewer points of a class in a tile: the tile gives no plane seed
     tile_max_rms: float = 0.02  # m, RMS point-to-plane distance of a planar tile
@@ -116,6 +126,7 @@ class HealthConfig:
 @dataclass
 class Config:
     window: WindowConfig = field(default_factory=WindowConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     planes: PlaneConfig = field(default_factory=PlaneConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
@@ -128,6 +139,7 @@ NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos"
                    "diagnostic_updater.period", "diagnostic_updater.use_fqn", "use_sim_time")
 #: Leaves that take one of a few strings.
 CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
+           "sensor.deskew": ("auto", "on", "off"), "sensor.model": ("", *SENSORS),
            "segmentation.backend": ("onnxruntime", "eager"),
            "planes.detector": ("ring", "open3d")}
 
@@ -179,6 +191,8 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
 
 def _coerce(name: str, current: Any, value: Any) -> Any:
     kind = type(current)
+    if kind is str and isinstance(value, bool) and {"on", "off"} <= set(CHOICES.get(name, ())):
+        return "on" if value else "off"  # YAML 1.1 reads a bare on / off as a boolean
     if kind is bool:
         if isinstance(value, bool):
             return value

@@ -29,15 +29,16 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from . import geometry
-from .cloud import CloudError, read_cloud, stamp_seconds, xyz
+from .cloud import CloudError, read_scan
 from .config import Config
 from .health import Health
 from .window import Frame, PoseBuffer, SlidingWindow
 
 #: Every counter the monitor keeps, in report order.
 COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue_full", "dropped_no_pose",
-            "dropped_duplicate", "dropped_bad_scan", "nonfinite_points", "bad_poses", "duplicate_poses",
-            "time_resets", "scan_errors", "window_errors", "windows_discarded")
+            "dropped_duplicate", "dropped_bad_scan", "nonfinite_points", "no_return_points", "bad_beam_points",
+            "scans_deskewed", "not_deskewed", "bad_poses", "duplicate_poses", "time_resets", "scan_errors",
+            "window_errors", "windows_discarded")
 #: Counters that are scans lost before processing.
 DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "scan_errors")
 MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
@@ -46,7 +47,8 @@ STAGE_QUEUE = 2  # live: items between two per-scan stages (the upstream stage w
 
 @dataclass
 class _Scan:
-    """A scan before its pose is known: sensor-frame arrays, header stamp (s), receive wall time."""
+    """A scan before its pose is known: sensor-frame arrays, header stamp (s), receive wall time, and the
+    span (s, relative to the stamp) of the sweep to deskew, None when it is not deskewed."""
 
     stamp: float
     points: np.ndarray
@@ -54,6 +56,9 @@ class _Scan:
     ring: np.ndarray | None
     intensity: np.ndarray | None
     arrived: float
+    time: np.ndarray | None = None
+    columns: int = 0
+    sweep: tuple | None = None  # (t_min, t_max, period_s, stamp_at)
     received: float | None = None  # caller's clock (node or bag time), for the failure check
 
 
@@ -151,6 +156,9 @@ class Monitor:
         self.health = Health(self.config.health)
         self.poses = PoseBuffer(w.pose_horizon_s)
         self.window = SlidingWindow(w.size, w.step)
+        self.model = pipeline.sensor_model(self.config)  # sensors.SensorModel or None (layout read off each cloud)
+        self.layout = ""  # driver layout of the last cloud (sensors.LAYOUTS name, "" unknown)
+        self.last_note = ""  # why a cloud's field was not used (e.g. an unusable time field)
         self.extrinsic = extrinsic_from_list(w.extrinsic)
         self.extrinsic_source = "config"
         self.static_tf = StaticTransforms()
@@ -233,32 +241,49 @@ class Monitor:
 
     # ---------------------------------------------------------------- inputs: messages
     def add_cloud(self, msg: Any, received: float | None = None) -> bool:
-        """A sensor_msgs/PointCloud2 (rosbags or rclpy). Malformed clouds are counted, never raised."""
+        """A sensor_msgs/PointCloud2 of any driver layout (rosbags or rclpy). Malformed clouds are counted,
+        never raised; points without a return or with a bad beam id are dropped and counted."""
+        model = self.model
         try:
-            fields = read_cloud(msg)
-            stamp = stamp_seconds(msg.header)
+            scan = read_scan(msg, model.beams if model is not None else 0)
         except (CloudError, AttributeError, TypeError, ValueError) as e:
             self.count("scans_in")
             if received is not None:  # a scan did arrive: input has not stopped, it fails (see failing)
                 self.last_scan_received = float(received)
             self._error("dropped_bad_scan", f"malformed cloud: {e}", received)
             return False
-        frame_id = str(getattr(msg.header, "frame_id", ""))
-        if frame_id and frame_id != self.sensor_frame:
-            self.sensor_frame = frame_id
+        if scan.frame_id and scan.frame_id != self.sensor_frame:
+            self.sensor_frame = scan.frame_id
             self._resolve_extrinsic()
-        pts, finite = xyz(fields)
-        all_finite = len(pts) == len(finite)  # the usual case: no per-point copy needed
-        per_point = {}
-        for name, key, dtype in (("labels", "label", np.uint8), ("ring", "ring", np.uint16),
-                                 ("intensity", "intensity", np.float32)):
-            a = fields.get(key)
-            if a is not None and a.ndim == 1:
-                per_point[name] = (a if all_finite else a[finite]).astype(dtype, copy=False)
-            else:
-                per_point[name] = None
-        self.count("nonfinite_points", len(finite) - len(pts))
-        return self._accept(stamp, pts, per_point, received, finite=True)
+        self.count("nonfinite_points", scan.dropped.get("nonfinite", 0))
+        self.count("no_return_points", scan.dropped.get("no_return", 0))
+        self.count("bad_beam_points", scan.dropped.get("bad_beam", 0))
+        if scan.notes:
+            self.last_note = "; ".join(scan.notes)
+        self.layout = scan.layout or self.layout
+        extra = {"labels": scan.labels, "ring": scan.beam, "intensity": scan.intensity, "time": scan.time}
+        return self._accept(scan.stamp, scan.points, extra, received, finite=True, columns=scan.columns,
+                            sweep=self._sweep(scan.time, scan.layout))
+
+    def _sweep(self, time: np.ndarray | None, layout: str) -> tuple | None:
+        """(t_min, t_max, period_s, stamp_at) of the sweep to deskew by config.sensor.deskew, or None:
+        per-point times when the cloud has them; else azimuth-derived times for a spinning sensor whose
+        driver (layout or named model) is known ('auto') or assumed ('on': clockwise, stamp at the first
+        point); a non-repetitive sensor without per-point times is not deskewed."""
+        from .deskew import sweep_span
+        from .sensors import LAYOUTS
+
+        mode, model = self.config.sensor.deskew, self.model
+        if mode == "off":
+            return None
+        period = 1.0 / (self.config.sensor.rate_hz or (model.rate_hz if model is not None else 10.0))
+        if time is not None:
+            return float(time.min()), float(time.max()), period, "first"
+        known = LAYOUTS.get(layout) or (model.layout if model is not None else None)
+        if (model is not None and model.pattern == "non_repetitive") or (known is None and mode != "on"):
+            return None
+        stamp_at = known.stamp if known is not None else "first"
+        return (*sweep_span(period, stamp_at), period, stamp_at)
 
     def add_odometry(self, msg: Any, received: float | None = None) -> bool:
         """A nav_msgs/Odometry (pose of its child frame in its parent frame). Bad quaternions are counted."""
@@ -307,15 +332,18 @@ class Monitor:
 
     def add_scan(self, stamp: float, points: np.ndarray, labels: np.ndarray | None = None,
                  ring: np.ndarray | None = None, intensity: np.ndarray | None = None,
-                 received: float | None = None) -> bool:
-        """One scan: (N, 3) sensor-frame points (m) and optional per-point arrays, header stamp (s).
+                 received: float | None = None, time: np.ndarray | None = None) -> bool:
+        """One scan: (N, 3) sensor-frame points (m) and optional per-point arrays (``time``: s relative to the
+        stamp, for deskewing), header stamp (s).
 
         Non-finite points are removed (counted); an empty, malformed, duplicate scan is dropped (counted).
         Returns True when the scan was accepted (it may still wait for odometry)."""
-        extra = {"labels": labels, "ring": ring, "intensity": intensity}
-        return self._accept(stamp, points, extra, received, finite=False)
+        extra = {"labels": labels, "ring": ring, "intensity": intensity, "time": time}
+        return self._accept(stamp, points, extra, received, finite=False,
+                            sweep=self._sweep(None if time is None else np.asarray(time), ""))
 
-    def _accept(self, stamp, points, extra: dict, received, finite: bool) -> bool:
+    def _accept(self, stamp, points, extra: dict, received, finite: bool, columns: int = 0,
+                sweep: tuple | None = None) -> bool:
         self.count("scans_in")
         clock = _clock(stamp, received)
         if clock is not None:  # a scan arrived, even if it fails below (failing, not STALE)
@@ -323,6 +351,7 @@ class Monitor:
         scan = self._checked_scan(stamp, points, extra, finite, clock)
         if scan is None:
             return False
+        scan.columns, scan.sweep = columns, sweep
         if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
             if scan.stamp == self._last_scan_stamp:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
@@ -360,7 +389,7 @@ class Monitor:
             self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}", received)
             return None
         return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
-                     time.perf_counter(), received)
+                     time.perf_counter(), extra["time"], received=received)
 
     def _time_reset(self, why: str, now: float | None) -> None:
         """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself.
@@ -382,7 +411,8 @@ class Monitor:
         newest = self.poses.newest
         while self._pending:
             scan = self._pending[0]
-            ready = final or (newest is not None and newest >= scan.stamp + w.pose_wait_s)
+            after = max(scan.sweep[1], 0.0) if scan.sweep else 0.0  # odometry must cover the sweep's end
+            ready = final or (newest is not None and newest >= scan.stamp + after + w.pose_wait_s)
             expired = self._last_scan_stamp - scan.stamp > w.pose_timeout_s
             if not (ready or expired):
                 return
@@ -392,8 +422,28 @@ class Monitor:
                 self._error("dropped_no_pose", f"no odometry within {w.max_pose_gap_s} s of scan {scan.stamp:.3f}",
                             scan.received)
                 continue
-            frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity)
+            frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity,
+                          scan.time, scan.columns, self._motion(scan))
             self._submit(frame, scan.arrived, scan.received)
+
+    def _motion(self, scan: _Scan):
+        """The sensor's motion over the scan's sweep from the odometry (deskew.sweep_motion; past the newest
+        pose, at most one sweep, the last motion continues), None when the scan is not deskewed or the
+        odometry does not cover the sweep (counted)."""
+        from .deskew import sweep_motion
+
+        if scan.sweep is None:
+            return None
+        gap = self.config.window.max_pose_gap_s
+        period = scan.sweep[2]
+
+        def pose_at(t: float):  # odometry that ends inside the sweep is continued to its end
+            pose = self.poses.lookup(t, gap, extrapolate_s=period)
+            return None if pose is None else pose @ self.extrinsic
+
+        motion = sweep_motion(pose_at, scan.stamp, *scan.sweep)
+        self.count("scans_deskewed" if motion is not None else "not_deskewed")
+        return motion
 
     # ---------------------------------------------------------------- work
     def _submit(self, frame: Frame, arrived: float, received: float | None = None) -> None:

@@ -47,7 +47,7 @@ ALL_CHOICES: dict[str, tuple[str, ...]] = {**CHOICES, "points_qos": QOS_CHOICES,
 RANGES: dict[str, tuple[float, float]] = {
     "window.size": (1, 200), "window.step": (0, 200), "window.pose_wait_s": (0.0, 10.0),
     "window.max_pose_gap_s": (0.001, 10.0), "window.queue_size": (1, 1000), "window.voxel_size": (0.0, 5.0),
-    "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0),
+    "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0), "sensor.rate_hz": (0.0, 100.0),
     "segmentation.threads": (1, 64), "segmentation.min_confidence": (0.0, 1.0),
     "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000),
@@ -91,7 +91,10 @@ def check(name: str, value: Any) -> None:
         lo, hi = RANGES[name]
         if not lo <= value <= hi:
             raise ValueError(f"parameter {name!r} = {value!r} is out of range [{lo:g}, {hi:g}]")
-    if name in ALL_CHOICES and value not in ALL_CHOICES[name]:
+    choices = ALL_CHOICES.get(name, ())
+    if isinstance(value, bool) and {"on", "off"} <= set(choices):
+        value = "on" if value else "off"  # a bare on / off in YAML (rcl reads it as a boolean too)
+    if name in ALL_CHOICES and value not in choices:
         raise ValueError(f"parameter {name!r} = {value!r} must be one of: {', '.join(ALL_CHOICES[name])}")
 
 

@@ -1,4 +1,5 @@
-"""The one place the order of work lives: scan -> segment -> planes (once per scan); window -> metrics.
+"""The one place the order of work lives: scan -> grid -> deskew -> segment -> planes (once per scan);
+window -> metrics.
 
 Frames of data: a scan's points and planes stay in its SENSOR frame; a window scores them in the window
 frame, the sensor frame of its first scan (T_rel,i = T_1⁻¹ T_i), as map-metrics does.
@@ -6,7 +7,7 @@ frame, the sensor frame of its first scan (T_rel,i = T_1⁻¹ T_i), as map-metri
 from __future__ import annotations
 
 import time
-from dataclasses import astuple, dataclass, field
+from dataclasses import astuple, dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -14,6 +15,8 @@ import numpy as np
 from . import classes as C
 from . import geometry, planes as planes_mod
 from .config import Config
+from .deskew import azimuth_times, deskew
+from .grid import ScanGrid, scan_grid
 from .metrics import cpv as cpv_mod
 from .metrics import drift_rate as drift_mod
 from .metrics import pne as pne_mod
@@ -130,47 +133,66 @@ def voxel_indices(points: np.ndarray, size: float) -> np.ndarray:
     return np.sort(first)
 
 
-def scan_labels(frame: Frame, config: Config, segmenter=None) -> np.ndarray:
+def sensor_model(config: Config):
+    """The sensors.SensorModel config.sensor.model names, or None (layout read off each cloud)."""
+    from .sensors import sensor
+
+    return sensor(config.sensor.model) if config.sensor.model else None
+
+
+def scan_labels(frame: Frame, config: Config, segmenter=None, grid=None) -> np.ndarray:
     """(N,) uint8 class per point by ``config.segmentation.mode`` (segmentation.infer.segment_frame: network,
-    the cloud's labels, or none = every point NONE_MODE_CLASS)."""
+    the cloud's labels, or none = every point NONE_MODE_CLASS); ``grid``: the scan's grid.ScanGrid."""
     from .segmentation.infer import segment_frame
 
     seg = config.segmentation
     if seg.mode == "network" and segmenter is None:
         segmenter = default_segmenter(seg)
-    labels, _ = segment_frame(frame, seg, segmenter)
+    labels, _ = segment_frame(frame, seg, segmenter, grid)
     return np.full(len(frame.points), NONE_MODE_CLASS, np.uint8) if labels is None else labels
 
 
 @dataclass
 class SegmentedScan:
-    """A scan after the first per-scan stage: ``frame`` (voxel downsampled when configured, sensor frame),
-    its (N,) uint8 ``labels``, the scan's position ``index`` and timings in ms so far."""
+    """A scan after the first per-scan stage: ``frame`` (deskewed and voxel downsampled when configured, sensor
+    frame at the stamp), its (N,) uint8 ``labels``, its ``grid`` (grid.ScanGrid of the points as fired), the
+    scan's position ``index`` and timings in ms so far."""
 
     frame: Frame
     labels: np.ndarray
     index: int = -1
     timings: dict[str, float] = field(default_factory=dict)
+    grid: ScanGrid | None = None
 
 
 def segment_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) -> SegmentedScan:
-    """Per-scan stage 1: optional voxel downsampling (config.window.voxel_size), then segmentation (network,
-    given labels, or none per config.segmentation.mode). Timings in ms under 'voxel', 'segment'. Torch
-    releases the GIL while the network runs, so this stage overlaps stage 2 of the previous scan."""
+    """Per-scan stage 1: the scan grid (grid.py, from the points as fired), deskew when the frame carries its
+    sweep motion (deskew.py), optional voxel downsampling (config.window.voxel_size), then segmentation
+    (network, given labels, or none per config.segmentation.mode). Timings in ms under 'grid', 'deskew',
+    'voxel', 'segment'. Torch releases the GIL while the network runs, so this stage overlaps stage 2 of the
+    previous scan."""
     timings: dict[str, float] = {}
     timer = _Timer(timings)
     labels = frame.labels
     if labels is not None and len(labels) != len(frame.points):
         raise ValueError(f"scan at {frame.stamp}: {len(labels)} labels for {len(frame.points)} points")
+    with timer("grid"):
+        grid = scan_grid(frame.points, frame.ring, frame.columns, sensor_model(config))
+    if frame.motion is not None:
+        with timer("deskew"):
+            m = frame.motion
+            times = frame.time if frame.time is not None else azimuth_times(frame.points, m.period_s, m.stamp_at)
+            frame = replace(frame, points=deskew(frame.points, times, m), motion=None)
     if config.window.voxel_size > 0:
         with timer("voxel"):
             keep = voxel_indices(frame.points, config.window.voxel_size)
-            frame = Frame(frame.points[keep], frame.pose, frame.stamp, *(None if a is None else a[keep]
-                                                                        for a in (frame.labels, frame.ring,
-                                                                                  frame.intensity)))
+            frame = replace(frame, points=frame.points[keep], **{k: None if getattr(frame, k) is None
+                                                                 else getattr(frame, k)[keep]
+                                                                 for k in ("labels", "ring", "intensity", "time")})
+            grid = grid.subset(keep)
     with timer("segment"):
-        labels = scan_labels(frame, config, segmenter)
-    return SegmentedScan(frame, labels, index, timings)
+        labels = scan_labels(frame, config, segmenter, grid)
+    return SegmentedScan(frame, labels, index, timings, grid)
 
 
 def plane_scan(seg: SegmentedScan, config: Config) -> ProcessedScan:
@@ -178,7 +200,7 @@ def plane_scan(seg: SegmentedScan, config: Config) -> ProcessedScan:
     in ms under 'planes' and 'total' (the sum of both stages' steps)."""
     frame, timings = seg.frame, dict(seg.timings)
     with _Timer(timings)("planes"):
-        found = planes_mod.detect_planes(frame.points, seg.labels, frame.ring, config.planes, frame=seg.index)
+        found = planes_mod.detect_planes(frame.points, seg.labels, seg.grid, config.planes, frame=seg.index)
     timings["total"] = float(sum(timings.values()))
     return ProcessedScan(stamp=float(frame.stamp), pose=np.asarray(frame.pose, np.float64), planes=found,
                          points=frame.points if config.metrics.baselines else None, labels=seg.labels,
@@ -186,12 +208,9 @@ def plane_scan(seg: SegmentedScan, config: Config) -> ProcessedScan:
 
 
 def process_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) -> ProcessedScan:
-    """Segment one scan (network, given labels, or none per config.segmentation.mode) and detect its planes:
-    :func:`segment_scan` then :func:`plane_scan` (the Monitor may run the two in separate threads).
-
-    Optional voxel downsampling (config.window.voxel_size) comes first. Sensor frame throughout; timings
-    in ms under 'voxel', 'segment', 'planes', 'total'. Points are kept only when config.metrics.baselines.
-    """
+    """Grid, deskew, segment one scan and detect its planes: :func:`segment_scan` then :func:`plane_scan`
+    (the Monitor may run the two in separate threads). Sensor frame throughout; timings in ms per step and
+    'total'. Points are kept only when config.metrics.baselines."""
     return plane_scan(segment_scan(frame, config, segmenter, index), config)
 
 

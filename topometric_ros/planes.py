@@ -12,16 +12,16 @@ Detection (:func:`detect_planes`), per static class, two detectors (config.plane
   class, points in each patch box, coplanar patches of one surface merged.
 Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
 joined by a lintel) and refit every plane on all its inliers with :func:`fit_plane`.
-:func:`plane_quality` scores detections against the simulator's plane-instance ids.
+experiments/plane_quality.py scores detections against the simulator's plane-instance ids.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import classes as C
+from .grid import as_grid
 
 
 @dataclass
@@ -166,12 +166,12 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
 _NCLS = C.NUM_CLASSES
 
 
-def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | None = None, config=None,
+def detect_planes(points: np.ndarray, labels: np.ndarray, grid=None, config=None,
                   frame: int = -1, return_inliers: bool = False):
     """Planes of one scan, per static class (classes.STATIC), in the sensor frame.
 
-    points: (N, 3) sensor frame, metres. labels: (N,) uint8 class ids. ring: (N,) beam index (0 = lowest) or
-    None (then the beam is found from the elevation, VLP-32C table). config: PlaneConfig (config.planes).
+    points: (N, 3) sensor frame, metres. labels: (N,) uint8 class ids. grid: the scan's grid.ScanGrid, or
+    the cloud's (N,) beam ids, or None (both found from the points, grid.as_grid). config: PlaneConfig.
     Every plane: unit normal toward the sensor (offset > 0), stats from all its inliers, class, ``frame``.
     Planes with fewer than config.min_points inliers are dropped.
 
@@ -187,19 +187,19 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, ring: np.ndarray | Non
         raise ValueError(f"labels must be integer class ids, got dtype {lab.dtype}")
     if len(lab) != len(pts):
         raise ValueError(f"{len(pts)} points but {len(lab)} labels")
-    if ring is not None and len(ring) != len(pts):
-        raise ValueError(f"{len(pts)} points but {len(ring)} ring ids")
+    if grid is not None and len(getattr(grid, "row", grid)) != len(pts):
+        raise ValueError(f"{len(pts)} points but {len(getattr(grid, 'row', grid))} grid cells / ring ids")
     if cfg.detector not in ("ring", "open3d"):
         raise ValueError(f"unknown plane detector {cfg.detector!r}; choose ring or open3d")
     if len(pts) == 0:
         return ([], np.zeros(0, np.int32)) if return_inliers else []
-    rows_cols = scan_rows_columns(pts, ring, cfg.azimuth_bins)
+    grid = as_grid(pts, grid)
     if cfg.detector == "ring":
-        assign, normal, offset = _assign_ring(pts, lab, rows_cols, cfg)
+        assign, normal, offset = _assign_ring(pts, lab, grid, cfg)
     else:
         assign, normal, offset = _assign_open3d(pts, lab, cfg)
     groups = _groups(assign)
-    groups = _split_at_openings(pts, groups, normal, offset, rows_cols, cfg)
+    groups = _split_at_openings(pts, groups, normal, offset, grid, cfg)
     planes, assign = _refit(pts, lab, groups, cfg, frame)
     return (planes, assign) if return_inliers else planes
 
@@ -259,19 +259,15 @@ def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
 
 
 class _Rays:
-    """Every ray of the scan on the ring × azimuth grid: a point, or nothing (an empty cell; its direction
-    from the ring's mean elevation and the cell's azimuth centre). One point per cell is enough here."""
+    """Every ray of the scan on its grid (grid.ScanGrid): a point, or nothing (an empty cell; its direction
+    from the row's median elevation and the cell's azimuth centre, grid.azimuth_columns). One point per cell is enough here."""
 
-    def __init__(self, pts: np.ndarray, row: np.ndarray, col: np.ndarray, azimuth_bins: int):
-        rows = int(row.max()) + 1
-        self.grid = np.full((rows, azimuth_bins), -1, np.int64)
-        self.grid[row, col] = np.arange(len(pts))
-        sub = slice(None, None, 7)  # a ring's elevation is nearly constant: a sample gives its mean
-        n = np.bincount(row[sub], minlength=rows)
-        elev = np.arctan2(pts[sub, 2], np.hypot(pts[sub, 0], pts[sub, 1]))
-        self.ring_elev = np.bincount(row[sub], elev, rows) / np.maximum(n, 1)
-        self.ring_seen = n > 0
-        self.pts, self.col, self.bins = pts, col, azimuth_bins
+    def __init__(self, pts: np.ndarray, grid):
+        self.grid = np.full((grid.height, grid.width), -1, np.int64)
+        self.grid[grid.row, grid.col] = np.arange(len(pts))
+        self.ring_seen = np.isfinite(grid.elevation_deg)
+        self.ring_elev = np.radians(np.nan_to_num(grid.elevation_deg))
+        self.pts, self.col, self.bins = pts, grid.col, grid.width
 
     def between(self, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         """(points, unit directions of empty rays) strictly between azimuth cells c0 and c1 (shorter arc)."""
@@ -283,7 +279,7 @@ class _Rays:
         cols = (c0 + 1 + np.arange((c1 - c0) % w - 1)) % w
         block = self.grid[:, cols]
         er, ec = np.nonzero((block < 0) & self.ring_seen[:, None])
-        e, az = self.ring_elev[er], (cols[ec] + 0.5) * (2 * np.pi / w)
+        e, az = self.ring_elev[er], cols[ec] * (2 * np.pi / w)
         empty = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], 1)
         return self.pts[block[block >= 0]], empty
 
@@ -296,15 +292,15 @@ def _groups(assign: np.ndarray) -> dict[int, np.ndarray]:
     return dict(zip(ids.tolist(), np.split(order, starts[1:])))
 
 
-def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset: np.ndarray, rows_cols,
+def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset: np.ndarray, grid,
                        cfg) -> list[np.ndarray]:
     """Split near-vertical planes at openings (doors): a gap wider than opening_width in the plane's inliers
     within opening_band of its lowest inlier, through which the scan sees BEHIND the plane (of the rays
     through the gap, at least opening_min_points and a fraction opening_through returned behind the plane
     or not at all; the rest hit an occluder in front). An occluder alone leaves a gap but no ray through it, so it splits
     nothing. Coplanar wall pieces joined only by a lintel become separate planes. Sensor z is taken as up.
-    groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); rows_cols:
-    each point's (row, column) on the scan grid (scan_rows_columns). Returns the point indices per plane."""
+    groups: {plane id: point indices}; normal, offset: each plane id's plane (toward the sensor); grid: the
+    scan's grid.ScanGrid. Returns the point indices per plane."""
     out = []
     rays = None
     for g, members in groups.items():
@@ -323,7 +319,7 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
             out.append(members)
             continue
         if rays is None:
-            rays = _Rays(pts, rows_cols[0], rows_cols[1], cfg.azimuth_bins)
+            rays = _Rays(pts, grid)
         cuts = []
         for k in gaps:
             x, e = rays.between(rays.col[members[low[k]]], rays.col[members[low[k + 1]]])
@@ -370,32 +366,21 @@ def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane],
 
 # ---- ring detector -------------------------------------------------------------------------------------
 
-def scan_rows_columns(points: np.ndarray, ring: np.ndarray | None, azimuth_bins: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's (row, column) in the organised scan: row = ring (or the nearest VLP-32C beam by
-    elevation when ring is None), column = azimuth cell of ``azimuth_bins`` per revolution."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    if ring is None:
-        from .sim.lidar import RING_ELEVATION_DEG
-
-        elev = np.degrees(np.arctan2(z, np.hypot(x, y)))
-        mids = (RING_ELEVATION_DEG[1:] + RING_ELEVATION_DEG[:-1]) / 2
-        row = np.searchsorted(mids, elev).astype(np.int64)
-    else:
-        row = np.asarray(ring).astype(np.int64)
-    az = np.arctan2(y, x)
-    col = np.floor(az * (azimuth_bins / (2 * np.pi))).astype(np.int64) % azimuth_bins
-    return row, col
+def tile_size(grid, cfg) -> tuple[int, int]:
+    """(rows, columns) of a base tile on ``grid``: config.planes' tile_rings per 32 rows and tile_columns per
+    1800 columns, so a tile covers about the same solid angle on every sensor."""
+    return (max(1, round(cfg.tile_rings * grid.height / 32)), max(1, round(cfg.tile_columns * grid.width / 1800)))
 
 
 _STATIC_INDEX = np.full(256, -1, np.int64)
 _STATIC_INDEX[list(C.STATIC)] = np.arange(len(C.STATIC))
 
 
-def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
-    """Plane group per point (−1 none) on the organised scan.
+def _assign_ring(pts, lab, grid, cfg) -> np.ndarray:
+    """Plane group per point (−1 none) on the scan grid (grid.ScanGrid).
 
-    Static points go into tiles of the ring × azimuth grid per class (tile_rings × tile_columns cells, and
-    coarser levels of 2×2 tiles). A quadtree keeps the coarsest planar tile over each cell (large tiles give
+    Static points go into tiles of the grid per class (tile_size: tile_rings × tile_columns cells scaled from a
+    32 × 1800 grid to this one, and coarser levels of 2×2 tiles). A quadtree keeps the coarsest planar tile over each cell (large tiles give
     good normals at short range and on sparse rings; small tiles separate surfaces). Neighbouring planar tiles
     that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
     plane of its own or a neighbouring tile within inlier_distance."""
@@ -405,9 +390,9 @@ def _assign_ring(pts, lab, rows_cols, cfg) -> np.ndarray:
         return assign, np.zeros((0, 3)), np.zeros(0)
     p = pts[static]
     ci = _STATIC_INDEX[lab[static]]
-    row, col = rows_cols[0][static], rows_cols[1][static]
-    tiles = _quadtree_tiles(p, ci, row // cfg.tile_rings, col // cfg.tile_columns,
-                            -(-cfg.azimuth_bins // cfg.tile_columns), cfg)
+    row, col = grid.row[static], grid.col[static]
+    tile_rows, tile_cols = tile_size(grid, cfg)
+    tiles = _quadtree_tiles(p, ci, row // tile_rows, col // tile_cols, -(-grid.width // tile_cols), cfg)
     if tiles is None:
         return assign, np.zeros((0, 3)), np.zeros(0)
     count, s, outer, normal, offset, mean, spread, tcls, grid, cell = tiles
@@ -644,95 +629,3 @@ def _sets_within(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
     small, large = (a, b) if len(a) <= len(b) else (b, a)
     d, _ = cKDTree(large).query(small, k=1, distance_upper_bound=gap)
     return bool(np.isfinite(d).any())
-
-
-# ---- quality against ground-truth plane instances ------------------------------------------------------
-
-def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 200,
-                  static: tuple = C.STATIC) -> dict:
-    """Detected planes of one scan against the simulator's plane-instance ids.
-
-    assign: (N,) plane index per point (−1 none), as ``detect_planes(..., return_inliers=True)`` gives.
-    labels, instance: (N,) ground-truth class and plane-instance id per point.
-
-    Definitions. Ground-truth planes: instances with ≥ ``min_points`` points of a static class. A detected
-    plane's majority instance is the instance most of its inliers come from; its purity is that fraction.
-    A ground-truth plane is recalled when some detected plane has it as majority instance AND holds ≥ 50 %
-    of its points. Returns {'n_truth', 'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one
-    per detected plane), 'missed' (instance ids), 'n_planes'}.
-    """
-    assign = np.asarray(assign)
-    instance = np.asarray(instance).astype(np.int64)
-    keep = np.isin(labels, static)
-    ids, sizes = np.unique(instance[keep], return_counts=True)
-    truth = ids[sizes >= min_points]
-    size_of = dict(zip(ids.tolist(), sizes.tolist()))
-    det = assign >= 0
-    pairs, overlap = np.unique(np.stack([assign[det].astype(np.int64), instance[det]], 1), axis=0,
-                               return_counts=True)
-    recalled, purity = set(), []
-    if len(pairs):
-        planes, starts = np.unique(pairs[:, 0], return_index=True)
-        for start, stop in zip(starts, list(starts[1:]) + [len(pairs)]):
-            k = start + int(np.argmax(overlap[start:stop]))
-            purity.append(float(overlap[k] / overlap[start:stop].sum()))
-            inst = int(pairs[k, 1])
-            if overlap[k] >= 0.5 * size_of.get(inst, np.inf):
-                recalled.add(inst)
-    hit = [int(i) for i in truth if int(i) in recalled]
-    return {"n_truth": int(len(truth)), "n_recalled": len(hit),
-            "recall": len(hit) / len(truth) if len(truth) else float("nan"), "purity": purity,
-            "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
-
-
-def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequence[int] = 0, min_points: int = 200,
-                      progress: bool = True) -> dict:
-    """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
-
-    For each scene and each trajectory seed: ``frames`` scans of simulated_frames(scene, frames, seed=seed);
-    per scene, pooled over the seeds, the recall (recalled / ground-truth planes over all scans, see
-    :func:`plane_quality`), the median purity over all detected planes, planes per scan and the median
-    detection time per scan (ms, wall clock, this process); 'recall_per_seed' and 'worst_recall' show the
-    spread between trajectories.
-    Returns {'detector', 'frames', 'seeds', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
-    """
-    import time
-
-    from tqdm import tqdm
-
-    from .config import PlaneConfig
-    from .sim.frames import simulated_frames
-
-    cfg = config if config is not None else PlaneConfig()
-    seeds = [seed] if isinstance(seed, (int, np.integer)) else list(seed)
-    out = {"detector": cfg.detector, "frames": frames, "seeds": seeds, "min_points": min_points, "scenes": {},
-           "scans": []}
-    for scene in scenes:
-        truth = recalled = 0
-        purity, n_planes, ms, per_seed = [], [], [], {}
-        for s in seeds:
-            sim, instances = simulated_frames(scene, frames, seed=s)
-            seed_truth = seed_recalled = 0
-            for i, (f, inst) in enumerate(tqdm(list(zip(sim, instances)), desc=f"{scene} seed {s} ({cfg.detector})",
-                                               disable=not progress, leave=False)):
-                t = time.perf_counter()
-                planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
-                ms.append(1000 * (time.perf_counter() - t))
-                q = plane_quality(assign, f.labels, inst, min_points)
-                seed_truth, seed_recalled = seed_truth + q["n_truth"], seed_recalled + q["n_recalled"]
-                purity += q["purity"]
-                n_planes.append(len(planes))
-                out["scans"].append({"scene": scene, "seed": s, "frame": i, "points": len(f.points),
-                                     "planes": len(planes), "truth": q["n_truth"], "recalled": q["n_recalled"],
-                                     "missed": q["missed"],
-                                     "median_purity": float(np.median(q["purity"])) if q["purity"] else None,
-                                     "ms": round(ms[-1], 3)})
-            per_seed[s] = seed_recalled / seed_truth if seed_truth else float("nan")
-            truth, recalled = truth + seed_truth, recalled + seed_recalled
-        out["scenes"][scene] = {"recall": recalled / truth if truth else float("nan"), "truth": truth,
-                                "recalled": recalled, "recall_per_seed": per_seed,
-                                "worst_recall": float(np.nanmin(list(per_seed.values()))),
-                                "median_purity": float(np.median(purity)) if purity else float("nan"),
-                                "min_purity": float(np.min(purity)) if purity else float("nan"),
-                                "planes_per_scan": float(np.mean(n_planes)), "ms_per_scan": float(np.median(ms))}
-    return out

@@ -37,8 +37,8 @@ RECORD_FORMAT = 3  # fields of a window record (windows.json): 2 added the drift
 class ReplayOptions:
     """Topics, speed and reporting of one replay."""
 
-    points_topic: str = "/points"
-    odom_topic: str = "/odom"
+    points_topic: str = ""  # "" = the bag's only PointCloud2 topic, else /points
+    odom_topic: str = ""  # "" = the bag's only Odometry topic (besides gt_topic), else /odom
     gt_topic: str = "/odom_gt"  # ground truth for RPE when the bag has it
     tf_static_topic: str = "/tf_static"
     rate: str = "max"  # max | realtime | a speed factor (e.g. "2")
@@ -196,7 +196,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     ref.append(monitor)
     gt_stamps, gt_poses, notes = [], [], []
     error, n_scans, first, last = "", 0, None, None
-    total = _scan_count(bag_path, opt.points_topic)
+    opt, total = _resolve_topics(bag_path, opt, notes)
     wall0, cpu0 = time.perf_counter(), time.thread_time()
     stale_reported = False
     from tqdm import tqdm
@@ -260,18 +260,24 @@ def load_segmenter(config: Config):
         raise ValueError(f"{e}") from None
 
 
-def _scan_count(path, topic: str) -> int | None:
+def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayOptions, int | None]:
+    """The options with the points and odometry topics found in the bag (bag.pick_topic; notes say when a
+    topic was picked) and the number of clouds (None when the bag's index cannot be read)."""
+    from dataclasses import replace as with_
+
     try:
-        return bag.topics(path).get(topic, (None, None))[1]
-    except Exception:  # noqa: BLE001 - only for the progress bar
-        return None
+        topics = bag.topics(path)
+    except Exception:  # noqa: BLE001 - a broken index: stream with the given (or default) names
+        return with_(opt, points_topic=opt.points_topic or "/points", odom_topic=opt.odom_topic or "/odom"), None
+    points, note_p = bag.pick_topic(topics, bag.POINTCLOUD2, opt.points_topic, "/points")
+    odom, note_o = bag.pick_topic(topics, bag.ODOMETRY, opt.odom_topic, "/odom", exclude=[opt.gt_topic])
+    notes += [n for n in (note_p, note_o) if n]
+    return with_(opt, points_topic=points, odom_topic=odom), topics.get(points, (None, None))[1]
 
 
 def _truth(path) -> dict | None:
-    from .sim.writer import load_truth
-
     p = Path(path)
-    return load_truth(p if p.is_dir() else p.parent)
+    return bag.load_truth(p if p.is_dir() else p.parent)
 
 
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:

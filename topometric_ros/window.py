@@ -8,6 +8,7 @@ from __future__ import annotations
 import bisect
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,10 @@ class Frame:
     pose: (4, 4) float64, sensor-to-map.
     stamp: seconds (header stamp of the cloud).
     labels: optional (N,) uint8 class ids (classes.py), e.g. the simulator's ground truth.
-    ring: optional (N,) uint16 beam index (0 = lowest), intensity: optional (N,) float32.
+    ring: optional (N,) beam id as the cloud gives it (ring field, else the organised row; grid.py orders
+    them by elevation), intensity: optional (N,) float32.
+    time: optional (N,) float32 s of each point relative to ``stamp``; columns: firings per revolution of an
+    organised cloud (0 = unknown); motion: deskew.SweepMotion when the points are to be deskewed.
     """
 
     points: np.ndarray
@@ -31,6 +35,9 @@ class Frame:
     labels: np.ndarray | None = None
     ring: np.ndarray | None = None
     intensity: np.ndarray | None = None
+    time: np.ndarray | None = None
+    columns: int = 0
+    motion: Any = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -83,9 +90,12 @@ class PoseBuffer:
             del self._stamps[:cut], self._poses[:cut]
         return status
 
-    def lookup(self, stamp: float, max_gap_s: float) -> np.ndarray | None:
+    def lookup(self, stamp: float, max_gap_s: float, extrapolate_s: float = 0.0) -> np.ndarray | None:
         """Pose at ``stamp`` interpolated between the poses around it (slerp + linear), or None when the
-        stamp is outside the buffer or either neighbour is more than ``max_gap_s`` away."""
+        stamp is outside the buffer or either neighbour is more than ``max_gap_s`` away. Up to
+        ``extrapolate_s`` past the newest pose, the last two poses' motion is continued (constant velocity)."""
+        if self._stamps and extrapolate_s > 0 and self._stamps[-1] < stamp <= self._stamps[-1] + extrapolate_s:
+            return self._extrapolate(stamp, max_gap_s)
         if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
             return None
         i = bisect.bisect_right(self._stamps, stamp) - 1
@@ -99,6 +109,17 @@ class PoseBuffer:
         poses, _ = geometry.interpolate_poses(np.array(self._stamps[i:j + 1]), np.stack(self._poses[i:j + 1]),
                                               np.array([stamp]))
         return poses[0]
+
+    def _extrapolate(self, stamp: float, max_gap_s: float) -> np.ndarray | None:
+        """The newest pose moved on by the last step's motion, scaled to ``stamp`` (None without two poses
+        within max_gap_s)."""
+        if len(self._stamps) < 2 or self._stamps[-1] - self._stamps[-2] > max_gap_s:
+            return None
+        a, b = self._poses[-2], self._poses[-1]
+        step = geometry.inverse(a) @ b
+        u = (stamp - self._stamps[-1]) / (self._stamps[-1] - self._stamps[-2])
+        rot = geometry.rotvec_to_matrix(u * geometry.matrix_to_rotvec(step[:3, :3]))
+        return b @ geometry.make_pose(rot, u * step[:3, 3])
 
 
 class SlidingWindow:

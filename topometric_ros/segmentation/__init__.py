@@ -1,14 +1,14 @@
 """Semantic segmentation of LiDAR scans with a small range-image network (plain PyTorch).
 
 projection.py (points <-> range image), model.py (the net), infer.py (Segmenter: shipped weights ->
-per-point labels and confidence), train.py / data.py (training from labelled bags), metrics.py (IoU),
+per-point labels and confidence), checkpoint.py (the weights file: load, check, save), train.py / data.py (training from labelled bags), metrics.py (IoU),
 evaluate.py (``topometric eval-seg``). Names resolve lazily so importing the package does not load torch.
 """
 from __future__ import annotations
 
 import importlib
 
-_EXPORTS = {"Segmenter": "infer", "SegmentationError": "infer", "SHIPPED": "infer", "segment_frame": "infer"}
+_EXPORTS = {"Segmenter": "infer", "SegmentationError": "checkpoint", "SHIPPED": "checkpoint", "segment_frame": "infer"}
 
 
 def __getattr__(name: str):

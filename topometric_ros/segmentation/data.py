@@ -1,12 +1,11 @@
 """Labelled scans from bags, and the cache of range images that training reads.
 
-A bag's PointCloud2 must carry a ``label`` field (the simulator's ground truth); ``ring`` and
-``intensity`` are used when present.
+A bag's PointCloud2 must carry a ``label`` field (the simulator's ground truth); any driver layout
+(cloud.read_scan), on the grid the monitor builds (grid.py).
 """
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -14,35 +13,32 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from .. import bag
-from ..cloud import read_cloud, xyz
+from ..cloud import read_scan
+from ..grid import ScanGrid, scan_grid
 from .projection import project, project_labels
 
 
 @dataclass
 class LabelledScan:
-    """One scan: points (N, 3) float32 sensor frame, ring (N,) or None, intensity (N,) or None, label (N,)."""
+    """One scan: points (N, 3) float32 sensor frame, its grid.ScanGrid, intensity (N,) or None, label (N,)."""
 
     points: np.ndarray
-    ring: np.ndarray | None
+    grid: ScanGrid
     intensity: np.ndarray | None
     label: np.ndarray | None
     stamp_ns: int = 0
 
 
 def read_scans(bag_path: str | Path, topic: str = "/points", every: int = 1, limit: int = 0) -> Iterator[LabelledScan]:
-    """Every ``every``-th cloud of ``topic`` in a bag (at most ``limit`` when > 0), finite points only."""
+    """Every ``every``-th cloud of ``topic`` in a bag (at most ``limit`` when > 0), returns only, on the grid
+    the monitor builds for it (no sensor named: the layout is read off the cloud)."""
     n = 0
     for i, (_, t_ns, msg) in enumerate(bag.read_messages(bag_path, [topic])):
         if i % every:
             continue
-        fields = read_cloud(msg)
-        points, finite = xyz(fields)
-
-        def field(name, dtype):
-            return np.asarray(fields[name])[finite].astype(dtype, copy=False) if name in fields else None
-
-        yield LabelledScan(points, field("ring", np.uint16), field("intensity", np.float32), field("label", np.uint8),
-                           t_ns)
+        scan = read_scan(msg)
+        grid = scan_grid(scan.points, scan.beam, scan.columns)
+        yield LabelledScan(scan.points, grid, scan.intensity, scan.labels, t_ns)
         n += 1
         if limit and n >= limit:
             return
@@ -50,24 +46,27 @@ def read_scans(bag_path: str | Path, topic: str = "/points", every: int = 1, lim
 
 def scene_of(bag_path: str | Path) -> str:
     """The scene a bag shows: from its truth.json (simulated bags), else the folder name."""
-    truth = Path(bag_path) / "truth.json"
-    if truth.exists():
-        cfg = json.loads(truth.read_text()).get("config", {})
-        return f"{cfg.get('scene', Path(bag_path).name)}"
-    return Path(bag_path).name
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("scene", Path(bag_path).name))
+
+
+def sensor_of(bag_path: str | Path) -> str:
+    """The sensor model a simulated bag was made with (truth.json), else the folder name."""
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("sensor", Path(bag_path).name))
 
 
 def scan_images(scan: LabelledScan) -> tuple[np.ndarray, np.ndarray]:
-    """(4, H, W) float16 x, y, z, intensity image and (H, W) uint8 label image (255 = no point)."""
-    image, proj = project(scan.points, scan.ring, scan.intensity)
+    """(k, 4, h, W) float16 x, y, z, intensity images and (k, h, W) uint8 label images (255 = no point) of a
+    scan's grid (projection.py: k interleaved images of at most 32 rows)."""
+    image, proj = project(scan.points, scan.grid, scan.intensity)
     if scan.label is None:
         raise ValueError("the cloud has no label field: training and evaluation need ground-truth labels")
-    return image[1:5].astype(np.float16), project_labels(proj, scan.label)
+    return image[:, 1:5].astype(np.float16), project_labels(proj, scan.label)
 
 
 def cache_key(bags: Sequence[str | Path], every: int) -> str:
-    """A short hash naming a cache: the bag paths, their truth.json and the subsampling."""
-    h = hashlib.sha256(str(every).encode())
+    """A short hash naming a cache: its format (the grid-based images), the bag paths, their truth.json and
+    the subsampling."""
+    h = hashlib.sha256(f"grid images v2|{every}".encode())
     for b in sorted(str(Path(p).resolve()) for p in bags):
         h.update(b.encode())
         truth = Path(b) / "truth.json"
@@ -77,38 +76,47 @@ def cache_key(bags: Sequence[str | Path], every: int) -> str:
 
 
 def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, topic: str = "/points",
-                progress: bool = True) -> dict[str, np.ndarray]:
+                progress: bool = True) -> dict[tuple, dict[str, np.ndarray]]:
     """Project every ``every``-th labelled scan of ``bags`` once and save them as an .npz at ``path``.
 
-    Arrays: images (S, 4, H, W) float16 (x, y, z, intensity), labels (S, H, W) uint8, scene (S,) str.
+    Returns {(rows, width): {'images': (S, 4, rows, width) float16 (x, y, z, intensity), 'labels': (S, rows,
+    width) uint8, 'scene': (S,) str, 'sensor': (S,) str}}: one group per image shape (a scan of many beams
+    adds its k interleaved images to its group).
     """
     from tqdm import tqdm
 
-    images, labels, scenes = [], [], []
+    groups: dict[tuple, dict[str, list]] = {}
     for b in tqdm(list(bags), desc="cache bags", unit="bag", disable=not progress):
         for scan in read_scans(b, topic, every):
-            im, lab = scan_images(scan)
-            images.append(im)
-            labels.append(lab)
-            scenes.append(scene_of(b))
-    if not images:
+            images, labels = scan_images(scan)
+            g = groups.setdefault(images.shape[-2:], {"images": [], "labels": [], "scene": [], "sensor": []})
+            g["images"] += list(images)
+            g["labels"] += list(labels)
+            g["scene"] += [scene_of(b)] * len(images)
+            g["sensor"] += [sensor_of(b)] * len(images)
+    if not groups:
         raise ValueError(f"no scans found on {topic} in {len(bags)} bag(s)")
-    data = {"images": np.stack(images), "labels": np.stack(labels), "scene": np.array(scenes)}
+    data = {shape: {k: np.stack(v) if k in ("images", "labels") else np.array(v) for k, v in g.items()}
+            for shape, g in groups.items()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **data)
+    np.savez(path, **{f"{k}_{h}x{w}": v for (h, w), g in data.items() for k, v in g.items()})
     return data
 
 
 def load_or_build_cache(bags: Sequence[str | Path], cache_dir: str | Path, every: int = 1,
-                        topic: str = "/points", progress: bool = True) -> dict[str, np.ndarray]:
-    """The cache for these bags under ``cache_dir`` (built on first use)."""
+                        topic: str = "/points", progress: bool = True) -> dict[tuple, dict[str, np.ndarray]]:
+    """The cache for these bags under ``cache_dir`` (built on first use), grouped by image shape."""
     path = Path(cache_dir) / f"seg_cache_{cache_key(bags, every)}.npz"
-    if path.exists():
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
-    return build_cache(bags, path, every, topic, progress)
-
+    if not path.exists():
+        return build_cache(bags, path, every, topic, progress)
+    data: dict[tuple, dict[str, np.ndarray]] = {}
+    with np.load(path) as z:
+        for key in z.files:
+            name, shape = key.rsplit("_", 1)
+            h, w = map(int, shape.split("x"))
+            data.setdefault((h, w), {})[name] = z[key]
+    return data
 
 
 def expand_bags(paths: Sequence[str | Path]) -> list[Path]:

@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import classes as C
 from ..reports import write_csv
-from .data import read_scans, scene_of
+from .data import read_scans, scene_of, sensor_of
 from .metrics import accuracy, confusion, iou_per_class, miou
 
 
@@ -24,15 +24,17 @@ def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, li
                   topic: str = "/points", progress: bool = True) -> dict:
     """Score ``segmenter`` (None = the clouds' own label field, a sanity check) on labelled bags.
 
-    Returns {'bags': {bag: conf}, 'scenes': {scene: conf}, 'all': conf, 'scan_ms': [...]} with (K, K)
-    confusion matrices (rows truth, columns prediction).
+    Returns {'bags': {bag: conf}, 'scenes': {scene: conf}, 'sensors': {sensor: conf}, 'all': conf,
+    'scan_ms': [...], 'sensor_ms': {sensor: [...]}} with (K, K) confusion matrices (rows truth, columns
+    prediction).
     """
     from tqdm import tqdm
 
-    per_bag, per_scene, times = {}, {}, []
+    per_bag, per_scene, per_sensor, times, sensor_ms = {}, {}, {}, [], {}
     total = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
     for b in tqdm(list(bags), desc="eval-seg", unit="bag", disable=not progress):
         conf = np.zeros_like(total)
+        sensor = sensor_of(b)
         for scan in read_scans(b, topic, every, limit):
             if scan.label is None:
                 raise ValueError(f"{b}: the cloud has no label field; eval-seg needs ground truth")
@@ -40,14 +42,17 @@ def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, li
                 pred = scan.label
             else:
                 t = time.perf_counter()
-                pred, _ = segmenter.predict(scan.points, scan.ring, scan.intensity)
+                pred, _ = segmenter.predict(scan.points, scan.grid, scan.intensity)
                 times.append(1000 * (time.perf_counter() - t))
+                sensor_ms.setdefault(sensor, []).append(times[-1])
             conf += confusion(scan.label, pred)
         per_bag[str(b)] = conf
         scene = scene_of(b)
         per_scene[scene] = per_scene.get(scene, 0) + conf
+        per_sensor[sensor] = per_sensor.get(sensor, 0) + conf
         total += conf
-    return {"bags": per_bag, "scenes": per_scene, "all": total, "scan_ms": times}
+    return {"bags": per_bag, "scenes": per_scene, "sensors": per_sensor, "all": total, "scan_ms": times,
+            "sensor_ms": sensor_ms}
 
 
 def summary_row(name: str, conf: np.ndarray) -> dict:
@@ -65,6 +70,8 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rows = [summary_row(f"bag:{Path(b).name}", c) for b, c in result["bags"].items()]
     rows += [summary_row(f"scene:{s}", c) for s, c in result["scenes"].items()]
+    if len(result.get("sensors", {})) > 1:
+        rows += [summary_row(f"sensor:{s}", c) for s, c in result["sensors"].items()]
     rows.append(summary_row("all", result["all"]))
     write_csv(out / "per_class_iou.csv", rows)
     conf = result["all"]
@@ -77,6 +84,7 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
         med = statistics.median(ms)
         speed.update({"median_ms": round(med, 2), "scans_per_s": round(1000 / med, 1),
                       "p90_ms": round(float(np.percentile(ms, 90)), 2)})
+    speed["per_sensor_median_ms"] = {k: round(statistics.median(v), 2) for k, v in result.get("sensor_ms", {}).items()}
     metrics = {"title": title, "rows": rows, "confusion": conf.tolist(), "classes": list(C.NAMES),
                "speed": speed}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

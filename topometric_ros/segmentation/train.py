@@ -10,7 +10,6 @@ max(step fraction, time fraction) and training stops cleanly when the time is up
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -23,13 +22,12 @@ import torch
 from torch.nn import functional as F
 
 from .. import classes as C
+from .checkpoint import FORMAT_VERSION, build_model, load_weights, save_weights, state_digest
 from .data import load_or_build_cache
 from .metrics import confusion, iou_per_class, miou
 from .model import ModelSpec, RangeNet, count_parameters
-from .projection import CHANNELS, HEIGHT, WIDTH
+from .projection import CHANNELS, MAX_ROWS
 
-WEIGHTS_NAME, CARD_NAME = "rangenet.pt", "model_card.json"
-FORMAT_VERSION = 1
 
 
 @dataclass
@@ -92,11 +90,17 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
     return torch.cat([rng, xyz, intensity * v, v], 1)
 
 
-def sample_crops(images: np.ndarray, labels: np.ndarray, n: int, width: int, rng: np.random.Generator):
-    """n random azimuth crops (wrapping around) of random scans: xyz+intensity (n, 4, H, width) float32, labels."""
+def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator):
+    """n random azimuth crops (wrapping around) of random images of ONE image-shape group (chosen with
+    probability proportional to its images): xyz+intensity (n, 4, rows, w) float32 and labels; w = width or
+    the group's own width when that is narrower."""
+    sizes = np.array([len(g["images"]) for g in groups], float)
+    g = groups[int(rng.choice(len(groups), p=sizes / sizes.sum()))]
+    images, labels = g["images"], g["labels"]
+    w = min(width, images.shape[-1])
     idx = rng.integers(len(images), size=n)
     start = rng.integers(images.shape[-1], size=n)
-    cols = (start[:, None] + np.arange(width)) % images.shape[-1]
+    cols = (start[:, None] + np.arange(w)) % images.shape[-1]
     x = np.stack([images[i][..., c] for i, c in zip(idx, cols)]).astype(np.float32)
     y = np.stack([labels[i][..., c] for i, c in zip(idx, cols)])
     return torch.from_numpy(x), torch.from_numpy(y.astype(np.int64))
@@ -141,16 +145,18 @@ def _rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> tor
 
 
 @torch.inference_mode()
-def evaluate_cache(model: RangeNet, images: np.ndarray, labels: np.ndarray, batch: int = 4) -> np.ndarray:
-    """Confusion matrix of the model on whole cached scans (circular padding)."""
+def evaluate_cache(model: RangeNet, groups: Sequence[dict], batch: int = 4) -> np.ndarray:
+    """Confusion matrix of the model on whole cached images of every shape group (circular padding)."""
     model.eval().set_circular(True)
     conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
-    for i in range(0, len(images), batch):
-        x = torch.from_numpy(images[i:i + batch].astype(np.float32))
-        y = labels[i:i + batch]
-        inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255))
-        pred = model(inp).argmax(1).numpy()
-        conf += confusion(y, pred)
+    for g in groups:
+        images, labels = g["images"], g["labels"]
+        for i in range(0, len(images), batch):
+            x = torch.from_numpy(images[i:i + batch].astype(np.float32))
+            y = labels[i:i + batch]
+            inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255))
+            pred = model(inp).argmax(1).numpy()
+            conf += confusion(y, pred)
     return conf
 
 
@@ -164,9 +170,11 @@ def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags:
         "name": "rangenet", "format_version": FORMAT_VERSION,
         "classes": list(C.NAMES), "paper_classes": [C.NAMES[c] for c in C.PAPER_CLASSES],
         "model": spec.as_dict(), "parameters": n_params,
-        "input": {"channels": list(CHANNELS), "height": HEIGHT, "width": WIDTH,
-                  "rows": "ring field (0 = lowest beam), else nearest VLP-32C beam elevation",
-                  "columns": "azimuth bins of 0.2 deg, column 0 at +x, counter-clockwise",
+        "input": {"channels": list(CHANNELS),
+                  "rows": "the scan grid's rows (grid.py: 0 = lowest beam), split into interleaved images of at "
+                          f"most {MAX_ROWS} rows, padded to a multiple of 4",
+                  "columns": "the scan grid's azimuth cells (firings per revolution, a multiple of 8), column 0 "
+                             "centred on +x, counter-clockwise",
                   "units": "range/x/y/z in m (sensor frame), intensity 0..255, valid 0/1"},
         "training": {"command": command, "bags": [str(b) for b in bags], "val_bags": [str(b) for b in val_bags],
                      "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
@@ -207,11 +215,10 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     g = torch.Generator().manual_seed(cfg.seed)
     data = load_or_build_cache(bags, cache_dir, cfg.every, progress=progress)
     val = load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress) if val_bags else None
-    images, labels = data["images"], data["labels"]
-    weights = torch.from_numpy(class_weights(labels))
+    groups = list(data.values())
+    val_groups = list(val.values()) if val is not None else None
+    weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
     if init:
-        from .infer import build_model, load_weights
-
         init_card, init_state = load_weights(init)
         model, started = build_model(init_card, init_state, str(init)), init_record(init, init_card, init_state)
         spec = model.spec
@@ -246,7 +253,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step", disable=not progress,
                    leave=False)
         for _ in bar:
-            x, y = sample_crops(images, labels, cfg.batch, cfg.crop_width, rng)
+            x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng)
             inp, y = augment(x, y, cfg, g)
             logits = model(inp)
             loss = F.cross_entropy(logits, y, weight=weights, ignore_index=255)
@@ -268,7 +275,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         entry = {"epoch": epoch + 1, "loss": round(float(np.mean(losses)), 4), "train_miou": round(miou(conf), 4),
                  "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
         if val is not None:
-            vconf = evaluate_cache(model, val["images"], val["labels"])
+            vconf = evaluate_cache(model, val_groups)
             entry["val_miou"] = round(miou(vconf), 4)
             entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
             if entry["val_miou"] >= best:
@@ -284,31 +291,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         model.load_state_dict(best_state)
         selected = max(e["epoch"] for e in history if e.get("best"))
     card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
-                      len(images), count_parameters(model), time.perf_counter() - t0, selected, started)
+                      sum(len(g["images"]) for g in groups), count_parameters(model), time.perf_counter() - t0,
+                      selected, started)
     save_weights(model, card, out)
     return card
-
-
-def state_digest(state: dict) -> str:
-    """sha256 over the names, dtypes, shapes and bytes of a state dict's tensors (sorted by name)."""
-    h = hashlib.sha256()
-    for k in sorted(state):
-        v = state[k].detach().cpu().contiguous()
-        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
-        h.update(v.reshape(-1).view(torch.uint8).numpy().tobytes() if v.numel() else b"")
-    return h.hexdigest()
-
-
-def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
-    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
-    OUT/model_card.json = card + the file's sha256."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / WEIGHTS_NAME
-    state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
-    card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
-    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
-    doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-                               "bytes": path.stat().st_size}}
-    (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
-    return path

@@ -1,9 +1,11 @@
 """Simulate a robot run and write it as a rosbag2 bag.
 
-Topics: /points (PointCloud2 in frame ``velodyne``: x, y, z, intensity float32, ring uint16, label uint8),
-/odom (estimated base_link pose, with drift), /odom_gt (ground truth), /tf_static (base_link -> velodyne).
-Odometry runs at ``odom_rate`` with stamps offset from the scans', so scans need interpolated poses.
-The bag folder also gets ``truth.json``: the settings, the drift episodes and per-class point counts.
+Topics: /points (PointCloud2 in the named sensor's driver layout and frame (sensors.LAYOUTS), plus a uint8
+``label`` field with the ground-truth class), /odom (estimated base_link pose, with drift), /odom_gt (ground
+truth), /tf_static (base_link -> sensor frame). Each sweep is motion-distorted (every firing at its own time
+along the true trajectory) unless ``distortion`` is off; header stamp and per-point time as the driver
+writes them. Odometry runs at ``odom_rate`` with stamps offset from the scans', so scans need interpolated
+poses. The bag folder also gets ``truth.json``: the settings, the drift episodes and per-class point counts.
 """
 from __future__ import annotations
 
@@ -15,17 +17,19 @@ from pathlib import Path
 import numpy as np
 
 from .. import bag, classes, geometry
-from ..cloud import make_cloud, rosbags_types
+from ..cloud import DATATYPES as DATATYPES_NP, make_layout_cloud, rosbags_types
+from ..sensors import DEFAULT_SENSOR, SensorModel, sensor
 from .drift import DriftSpec, estimated_poses, plan_episodes
-from .lidar import Lidar, LidarSpec
+from .lidar import Lidar, Scan, firings_per_sweep
 from .scenes import make_scene
 from .trajectory import random_trajectory
 
 START_TIME = 1_700_000_000.0  # s, bag time of the first scan
 #: Version of what the simulator writes for a given SimConfig, kept in truth.json so caches of simulated bags
-#: notice a change. 2: the heading turns at a bounded rate (sim/trajectory.py MAX_YAW_RATE_DEG).
-SIM_VERSION = 2
-SENSOR_FRAME, BASE_FRAME, MAP_FRAME = "velodyne", "base_link", "map"
+#: notice a change. 2: the heading turns at a bounded rate (sim/trajectory.py MAX_YAW_RATE_DEG). 3: any
+#: sensor in its driver's layout, motion distortion.
+SIM_VERSION = 3
+BASE_FRAME, MAP_FRAME = "base_link", "map"
 
 
 @dataclass
@@ -39,13 +43,15 @@ class SimConfig:
     rate: float = 5.0  # scans per second
     odom_rate: float = 20.0  # odometry messages per second
     speed: float = 1.2  # m/s
-    sensor_height: float = 1.0  # m, base_link -> velodyne
+    sensor_height: float = 1.0  # m, base_link -> sensor
     drift: DriftSpec = field(default_factory=DriftSpec)
     storage: str = "mcap"
+    sensor: str = DEFAULT_SENSOR  # a sensors.SENSORS name
+    distortion: bool = True  # each firing at its own time along the trajectory (False: instantaneous sweeps)
 
     @property
     def extrinsic(self) -> np.ndarray:
-        """base_link -> velodyne, 4×4."""
+        """base_link -> sensor, 4×4."""
         return geometry.make_pose(np.eye(3), [0.0, 0.0, self.sensor_height])
 
 
@@ -68,30 +74,32 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
     episodes = plan_episodes(START_TIME, START_TIME + cfg.frames / cfg.rate, cfg.drift, rng)
     est_odom = estimated_poses(odom_t, gt_odom, cfg.drift, episodes, rng)
     scan_t = START_TIME + np.arange(cfg.frames) / cfg.rate
-    sensor_poses = traj.poses_at(scan_t) @ cfg.extrinsic
-    lidar = Lidar(scene, LidarSpec())
+    model = sensor(cfg.sensor)
+    lidar = Lidar(scene, model)
     types = rosbags_types(bag.typestore())
     counts = np.zeros(classes.NUM_CLASSES, np.int64)
-    n_points = []
+    n_points, sensor_poses = [], []
+    frame_id = model.layout.frame_id
     k = 0  # next odometry message
     with bag.BagWriter(out, storage=cfg.storage) as w, _progress(cfg.frames, f"simulate {cfg.scene}", progress) as bar:
-        w.write("/tf_static", scan_t[0] - 0.5, bag.make_tf(scan_t[0] - 0.5, cfg.extrinsic, BASE_FRAME, SENSOR_FRAME))
-        for i, (t, pose) in enumerate(zip(scan_t, sensor_poses)):
-            while k < len(odom_t) and odom_t[k] <= t + 0.05:  # odometry up to this scan's receive time
+        w.write("/tf_static", scan_t[0] - 0.5, bag.make_tf(scan_t[0] - 0.5, cfg.extrinsic, BASE_FRAME, frame_id))
+        for i, stamp in enumerate(scan_t):
+            scan, t0 = _sweep(lidar, traj, cfg, float(stamp), i, rng)
+            received = t0 + model.period_s + 0.02  # the driver publishes after the sweep
+            while k < len(odom_t) and odom_t[k] <= received:  # odometry up to this scan's receive time
                 w.write("/odom", odom_t[k], bag.make_odometry(odom_t[k], est_odom[k], MAP_FRAME, BASE_FRAME))
                 w.write("/odom_gt", odom_t[k], bag.make_odometry(odom_t[k], gt_odom[k], MAP_FRAME, BASE_FRAME))
                 k += 1
-            scan = lidar.scan(pose, rng)
-            msg = make_cloud({"x": scan.points[:, 0], "y": scan.points[:, 1], "z": scan.points[:, 2],
-                              "intensity": scan.intensity, "ring": scan.ring, "label": scan.label},
-                             t, SENSOR_FRAME, types, align=4)
-            w.write("/points", t + 0.05, msg)  # received 50 ms after the sweep's stamp
-            counts += np.bincount(scan.label, minlength=classes.NUM_CLASSES)
-            n_points.append(len(scan.points))
+            w.write("/points", received, driver_cloud(scan, model, float(stamp), t0, types))
+            hit = np.isfinite(scan.points[:, 0])
+            counts += np.bincount(scan.label[hit], minlength=classes.NUM_CLASSES)
+            n_points.append(int(hit.sum()))
+            sensor_poses.append(traj.poses_at(np.array([stamp]))[0] @ cfg.extrinsic)
             bar.update()
         for j in range(k, len(odom_t)):
             w.write("/odom", odom_t[j], bag.make_odometry(odom_t[j], est_odom[j], MAP_FRAME, BASE_FRAME))
             w.write("/odom_gt", odom_t[j], bag.make_odometry(odom_t[j], gt_odom[j], MAP_FRAME, BASE_FRAME))
+    sensor_poses = np.stack(sensor_poses)
     summary = {
         "bag": str(out), "simulator": SIM_VERSION, "config": {**asdict(cfg), "drift": asdict(cfg.drift)},
         "scene_area_m2": round(scene.area, 1), "frames": cfg.frames, "duration_s": cfg.frames / cfg.rate,
@@ -105,10 +113,55 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
     return summary
 
 
-def load_truth(bag_path: str | Path) -> dict | None:
-    """The truth.json a simulated bag carries, or None for other bags."""
-    p = Path(bag_path) / "truth.json"
-    return json.loads(p.read_text()) if p.exists() else None
+def _sweep(lidar: Lidar, traj, cfg: SimConfig, stamp: float, index: int, rng: np.random.Generator
+           ) -> tuple[Scan, float]:
+    """Sweep ``index`` stamped ``stamp`` (every firing kept, in firing order) and its first firing's time t0:
+    the stamp for drivers that stamp the first point, the stamp minus the sweep for those that stamp the last."""
+    m = lidar.model
+    n = firings_per_sweep(m)
+    t_fire = np.arange(n) * (m.period_s / n)
+    t0 = stamp - t_fire[-1] if m.layout.stamp == "last" else stamp
+    times = t0 + t_fire if cfg.distortion else np.array([stamp])
+    poses = traj.poses_at(times) @ cfg.extrinsic
+    return lidar.sweep(poses, rng, index, returns_only=False), t0
+
+
+def driver_cloud(scan: Scan, model: SensorModel, stamp: float, t0: float, types) -> object:
+    """The PointCloud2 the model's driver writes for a sweep (every firing, no return = NaN range), plus a
+    uint8 ``label`` field (ground truth): layout, organisation, no-return points, ring order, per-point time
+    and header stamp as in sensors.LAYOUTS."""
+    lay = model.layout
+    hit = np.isfinite(scan.points[:, 0])
+    t_abs = t0 + scan.time  # s, each firing's time
+    pts = scan.points if lay.no_return == "nan" else np.where(hit[:, None], scan.points, 0.0)
+    a = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": scan.intensity,
+         "label": np.where(hit, scan.label, 0).astype(np.uint8)}
+    if scan.ring is not None:
+        a["ring"] = (model.beams - 1 - scan.ring) if lay.ring_top_first else scan.ring
+    if lay.name == "velodyne":  # velodyne_pointcloud has no firing-time table for the HDL-64E: time stays 0
+        a["time"] = np.zeros(len(t_abs), np.float32) if model.name == "HDL-64E" else (t_abs - stamp).astype(np.float32)
+    elif lay.name == "ouster":
+        a["t"] = np.rint((t_abs - stamp) * 1e9).astype(np.uint32)
+        a["reflectivity"] = np.minimum(scan.intensity, 255).astype(np.uint16)
+        a["range"] = np.where(hit, np.rint(np.linalg.norm(np.nan_to_num(scan.points), axis=1) * 1000), 0).astype(np.uint32)
+    elif lay.name == "hesai":  # the packet's time (8 columns of 50 us blocks per packet)
+        packet = (scan.firing // 8) * 8 * (model.period_s / model.columns)
+        a["timestamp"] = t0 + packet
+    elif lay.name == "livox":
+        a["timestamp"] = t_abs * 1e9
+        a["line"] = (scan.firing % 4).astype(np.uint8)
+    height = 1
+    if lay.organised == "beams x columns":  # row 0 = the top beam, columns in firing order
+        order = np.lexsort((scan.firing, model.beams - 1 - scan.ring))
+        a, height = {k: v[order] for k, v in a.items()}, model.beams
+    elif lay.organised == "firings x beams":  # one row per firing, one column per ring (ascending)
+        height = model.columns
+    if lay.no_return == "dropped":
+        a = {k: v[hit] for k, v in a.items()}
+    end = max(off + np.dtype(DATATYPES_NP[dt]).itemsize for _, off, dt in lay.fields)
+    fields = (*lay.fields, ("label", end, 2))
+    step = max(lay.point_step, end + 1)
+    return make_layout_cloud(a, fields, step, stamp, lay.frame_id, types, height, lay.padding, is_dense=False)
 
 
 def bag_identity(truth: dict | None) -> dict | None:

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import geometry
-from .reports import pyplot, write_csv
-from .sim.drift import BASE_NOISE_ROT_DEG, BASE_NOISE_TRANS_M
+from .. import geometry
+from ..reports import pyplot, write_csv
+from ..sim.drift import BASE_NOISE_ROT_DEG, BASE_NOISE_TRANS_M
 
 METRICS = ("mme", "mpv", "mom", "pne", "cpv")
 BASELINES = ("mme", "mpv", "mom")
@@ -61,7 +61,7 @@ class ExperimentSpec:
 # ---------------------------------------------------------------- per-scan work (once per trajectory)
 
 def _frames(scene: str, traj: int, spec: ExperimentSpec):
-    from .sim.frames import simulated_frames
+    from ..sim.frames import simulated_frames
 
     frames, _ = simulated_frames(scene, spec.frames, rate=5.0, speed=1.0, seed=TRAJECTORY_SEED0 + traj)
     return frames
@@ -72,13 +72,13 @@ def _scan_cache(out: Path, scene: str, traj: int, labels: str, spec: ExperimentS
     path = out / "cache" / f"{scene}_{traj}_{_label_tag(labels)}.pkl"
     if path.exists():
         return path
-    from .config import load_config
-    from .pipeline import process_scan
+    from ..config import load_config
+    from ..pipeline import process_scan
 
     config = load_config(overrides={"segmentation.mode": "network" if labels == "network" else "labels"})
     segmenter = None
     if labels == "network":
-        from .segmentation.infer import Segmenter
+        from ..segmentation.infer import Segmenter
 
         segmenter = Segmenter.from_config(config.segmentation)
     scans = [replace(process_scan(f, config, segmenter, i), points=None, labels=None)
@@ -106,7 +106,7 @@ def _label_tag(labels: str) -> str:
     recompute its scans and jobs while ground truth and baselines are kept."""
     if labels != "network":
         return labels
-    from .segmentation.infer import SHIPPED
+    from ..segmentation.checkpoint import SHIPPED
 
     return f"network-{_file_digest(str(SHIPPED))}"
 
@@ -157,9 +157,9 @@ def _run_job(out: Path, spec: ExperimentSpec, source: str, scene: str, traj: int
 def _plane_rows(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: int, win: int, noise: str,
                 scale: float) -> list[dict]:
     """Per window: RPE (Eq. 4 and its parts), PNE, CPV, plane counts and times, from the cached scans."""
-    from .config import load_config
-    from .metrics.rpe import rpe, rpe_parts
-    from .pipeline import score_window
+    from ..config import load_config
+    from ..metrics.rpe import rpe, rpe_parts
+    from ..pipeline import score_window
 
     scans = pickle.loads(_scan_cache(out, scene, traj, labels, spec).read_bytes())
     config = load_config()
@@ -179,8 +179,8 @@ def _plane_rows(out: Path, spec: ExperimentSpec, labels: str, scene: str, traj: 
 def _baseline_rows(out: Path, spec: ExperimentSpec, _source: str, scene: str, traj: int, win: int, noise: str,
                    scale: float) -> list[dict]:
     """MME, MPV, MOM and their times on the seeded subset of windows (every point of the scans, no labels)."""
-    from .config import load_config
-    from .pipeline import baselines
+    from ..config import load_config
+    from ..pipeline import baselines
 
     config = load_config(overrides={"metrics.radius": spec.radius})  # fast MME/MPV (exact_baselines off)
     frames = _frames(scene, traj, spec)
@@ -293,7 +293,7 @@ def _median_of(groups: list[dict[str, np.ndarray]], fn, metrics: tuple) -> tuple
 
 
 def _rank_multi_relation(*variables) -> float:
-    from .correlation import multi_relation
+    from ..correlation import multi_relation
 
     return multi_relation(*variables, ranks=True)
 
@@ -308,7 +308,7 @@ def correlation_table(spec: ExperimentSpec, runs) -> list[dict]:
     """Rows (labels, noise, scale, windows, metric, n, pearson, spearman, kendall) at the correlation window size,
     for each way of pooling windows (POOLS; per-trajectory rows are medians over trajectories and only for PNE
     and CPV, the baselines having too few windows per trajectory). n: windows (per trajectory for medians)."""
-    from .correlation import kendall, pearson, spearman
+    from ..correlation import kendall, pearson, spearman
 
     rows = []
     for labels in spec.labels:
@@ -327,7 +327,7 @@ def multirelation_table(spec: ExperimentSpec, runs) -> list[dict]:
     """Multi-relation(PNE, CPV, RPE), (PNE, RPE), (CPV, RPE) per label source, noise, scale and window pooling
     ('all' and 'per-trajectory' median; see _pools); also MR(PNE, CPV, RPE) of ranks, which separates monotone
     but non-linear dependence (PNE is logarithmic in the normal spread, CPV quadratic in offsets) from none."""
-    from .correlation import multi_relation
+    from ..correlation import multi_relation
 
     rows = []
     for labels in spec.labels:

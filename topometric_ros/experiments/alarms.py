@@ -24,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config, HealthConfig, flatten
-from .health import RATES, Health
-from .replay import RECORD_FORMAT, ReplayOptions, replay
-from .sim.drift import DriftSpec
-from .sim.writer import SIM_VERSION, SimConfig, bag_identity, load_truth, simulate
+from ..config import Config, HealthConfig, flatten
+from ..health import RATES, Health
+from ..replay import RECORD_FORMAT, ReplayOptions, replay
+from ..sim.drift import DriftSpec
+from ..bag import load_truth
+from ..sim.writer import SIM_VERSION, SimConfig, bag_identity, simulate
 
 #: split -> groups of (floor-plan seeds the bags cycle through, first trajectory seed). Disjoint from each
 #: other and from the segmentation splits (layout 0 train/test seeds 0../1000.., unseen layout 7 seeds 0..).
@@ -164,7 +165,7 @@ def _weights_digest(config: Config) -> str | None:
         return None
     import hashlib
 
-    from .segmentation.infer import SHIPPED
+    from ..segmentation.checkpoint import SHIPPED
 
     return hashlib.sha256(Path(config.segmentation.weights or SHIPPED).read_bytes()).hexdigest()
 
@@ -325,7 +326,7 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
 
 
 def _write_calibration(out: Path, doc: dict) -> None:
-    from .reports import pyplot, write_csv
+    from ..reports import pyplot, write_csv
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "calibration.json").write_text(json.dumps(doc, indent=1))
@@ -396,7 +397,7 @@ def _write(out: Path, table: dict) -> None:
                         " ".join("-" if x is None else str(x) for x in r["latencies"])])
         fr = table["drift_free"]
         w.writerow(["drift-free", "none", 0, 0, 0, f"{fr['false_warn_windows']} false WARN in {fr['minutes']:.1f} min"])
-    from .reports import pyplot
+    from ..reports import pyplot
 
     plt = pyplot()
 

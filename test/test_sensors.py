@@ -1,0 +1,96 @@
+"""Any LiDAR: every sensors.py model simulated in its driver's layout, read back by cloud.read_scan, put on
+its grid by grid.scan_grid with and without the model named, and bad beams dropped per point."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from topometric_ros import bag
+from topometric_ros.cloud import make_layout_cloud, read_scan, rosbags_types
+from topometric_ros.grid import scan_grid
+from topometric_ros.sensors import LAYOUTS, SENSORS, sensor
+from topometric_ros.sim.lidar import Lidar, firings_per_sweep
+from topometric_ros.sim.scenes import make_scene
+from topometric_ros.sim.writer import driver_cloud
+
+STAMP = 1_700_000_000.25
+
+
+@pytest.fixture(scope="module")
+def office():
+    return make_scene("office1")
+
+
+def _cloud(office, name, pose_step=None):
+    """One sweep of ``name`` in office1 (instantaneous, or moving by pose_step per firing) as its driver's
+    PointCloud2, with the sweep (every firing) it came from."""
+    model = sensor(name)
+    lidar = Lidar(office, model)
+    pose = np.eye(4)
+    pose[:3, 3] = [4.0, 3.0, 1.0]
+    sweep = lidar.sweep(pose[None], np.random.default_rng(0), returns_only=False)
+    n = firings_per_sweep(model)
+    t0 = STAMP - (n - 1) * model.period_s / n if model.layout.stamp == "last" else STAMP
+    return driver_cloud(sweep, model, STAMP, t0, rosbags_types(bag.typestore())), sweep, t0
+
+
+@pytest.mark.parametrize("name", list(SENSORS))
+def test_every_sensor_reads_back_with_its_rows_times_and_returns(office, name):
+    model = sensor(name)
+    msg, sweep, t0 = _cloud(office, name)
+    scan = read_scan(msg)
+    hit = np.isfinite(sweep.points[:, 0])
+    assert scan.layout == model.driver
+    assert len(scan.points) == hit.sum()  # every return, no no-return point (NaN or zero) kept
+    assert sum(scan.dropped.values()) == (~hit).sum()
+    lay = LAYOUTS[model.driver]
+    assert msg.point_step >= lay.point_step and [f.name for f in msg.fields][:len(lay.fields)] == [f[0] for f in lay.fields]
+    if lay.organised:
+        assert msg.height > 1 and scan.columns == model.columns
+    # per-point time: each return's own firing time relative to the header stamp (HDL-64E: velodyne has none)
+    if name == "HDL-64E":
+        assert scan.time is None and "constant" in scan.notes[0]
+    else:
+        fired = np.sort(t0 + sweep.time[hit] - STAMP)
+        step = 8 * model.period_s / model.columns if model.driver == "hesai" else 1e-6  # hesai: packet times
+        np.testing.assert_allclose(np.sort(scan.time), fired, atol=step)
+    # rows: the grid gives every return its true beam, from the ring field, the model, or the scan itself
+    if model.pattern == "spinning":
+        truth = np.sort(sweep.ring[hit])
+        for grid in (scan_grid(scan.points, scan.beam, scan.columns), scan_grid(scan.points, model=model),
+                     scan_grid(scan.points)):
+            assert grid.height == model.beams
+            assert np.array_equal(np.sort(grid.row), truth), grid.source
+        assert scan_grid(scan.points).width == model.columns or abs(scan_grid(scan.points).width - model.columns) <= 8
+    else:
+        grid = scan_grid(scan.points, scan.beam, scan.columns)
+        assert grid.source.startswith("elevation bins") and grid.height == 32
+        assert scan_grid(scan.points, model=model).width == model.columns
+
+
+def test_a_bad_beam_id_drops_that_point_not_the_scan():
+    types = rosbags_types(bag.typestore())
+    lay = LAYOUTS["velodyne"]
+    n = 400
+    rng = np.random.default_rng(0)
+    arrays = {"x": rng.uniform(1, 5, n).astype(np.float32), "y": rng.uniform(1, 5, n).astype(np.float32),
+              "z": rng.uniform(-1, 1, n).astype(np.float32), "ring": np.arange(n) % 16, "time": np.zeros(n)}
+    arrays["ring"][[3, 77]] = [127, 300]
+    scan = read_scan(make_layout_cloud(arrays, lay.fields, lay.point_step, STAMP, "velodyne", types))
+    assert len(scan.points) == n - 1 and scan.dropped["bad_beam"] == 1  # 300 >= MAX_BEAMS; 127 is a valid id
+    scan16 = read_scan(make_layout_cloud(arrays, lay.fields, lay.point_step, STAMP, "velodyne", types), max_beams=16)
+    assert len(scan16.points) == n - 2 and scan16.dropped["bad_beam"] == 2  # a named 16-beam sensor
+
+
+@pytest.mark.parametrize("unit, absolute", [("s", False), ("ns", False), ("s", True), ("ns", True), ("us", True)])
+def test_a_time_field_in_any_unit_and_reference_becomes_seconds_after_the_stamp(unit, absolute):
+    types = rosbags_types(bag.typestore())
+    t = np.linspace(0.0, 0.0999, 500)
+    value = (STAMP if absolute else 0.0) + t
+    value = {"s": value, "ns": value * 1e9, "us": value * 1e6}[unit]
+    kind = 8 if absolute or unit == "s" else 6  # float64 or uint32
+    fields = (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("timestamp", 12, kind))
+    arrays = {"x": np.ones(500, np.float32), "y": np.linspace(-1, 1, 500), "z": np.zeros(500), "timestamp": value}
+    msg = make_layout_cloud(arrays, fields, 20, STAMP, "lidar", types)
+    scan = read_scan(msg)
+    np.testing.assert_allclose(scan.time, t, atol=1e-6)  # float64 ns since the epoch hold 256 ns steps

@@ -1,0 +1,84 @@
+"""Motion compensation of one sweep: every point moved to where the sensor was at the scan's header stamp.
+
+A spinning LiDAR fires its columns over ~100 ms; a robot moving 1.5 m/s smears a sweep by 15 cm and a
+90 °/s turn by 9°. With each point's time t (s, relative to the header stamp; from the cloud's time field,
+else from its azimuth for a spinning sensor) and the odometry interpolated at those times, a point p fired
+at t is mapped to T(stamp)⁻¹ T(stamp + t) p: sensor frame at t -> sensor frame at the stamp.
+
+The poses used are the SLAM estimate the monitor judges. Deskewing with them moves each point by the
+estimated intra-sweep motion; a drift of ω rad/s in that estimate bends one sweep by at most ω · sweep
+length (0.2° per sweep at 2 °/s), the same small warp in every scan, while PNE, CPV and the drift rates
+compare planes BETWEEN scans, where the drift accumulates window-long. So deskewing removes the large,
+real smear and cannot hide drift; it cannot undo it either.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from . import geometry
+
+KNOTS = 17  # poses sampled across a sweep; between them the motion is interpolated linearly (rotation vector)
+
+
+@dataclass
+class SweepMotion:
+    """The sensor's motion over one sweep: knot times (K,) s relative to the scan stamp (ascending) and, at
+    each, the pose of the sensor at that time in the sensor frame AT THE STAMP as a rotation vector (K, 3)
+    rad and a translation (K, 3) m. ``period_s`` and ``stamp_at`` ('first' | 'last') tell azimuth_times how
+    to time points of a cloud without per-point times."""
+
+    times: np.ndarray
+    rotvecs: np.ndarray
+    translations: np.ndarray
+    period_s: float = 0.1
+    stamp_at: str = "first"
+
+
+def sweep_span(period_s: float, stamp_at: str) -> tuple[float, float]:
+    """(t_min, t_max) s of a sweep relative to its header stamp: [0, T] when the stamp is the first point's
+    time, [-T, 0] when it is the last one's."""
+    return (-period_s, 0.0) if stamp_at == "last" else (0.0, period_s)
+
+
+def sweep_motion(pose_at: Callable[[float], np.ndarray | None], stamp: float, t_min: float, t_max: float,
+                 period_s: float = 0.1, stamp_at: str = "first", knots: int = KNOTS) -> SweepMotion | None:
+    """The motion over [stamp + t_min, stamp + t_max] from ``pose_at(t)`` (4×4 sensor-to-map pose at time t,
+    None where unknown); None when a pose is missing."""
+    times = np.linspace(min(t_min, 0.0), max(t_max, 0.0), knots)
+    ref = pose_at(stamp)
+    poses = [pose_at(stamp + float(t)) for t in times]
+    if ref is None or any(p is None for p in poses):
+        return None
+    rel = geometry.inverse(ref) @ np.stack(poses)
+    return SweepMotion(times, geometry.matrix_to_rotvec(rel[:, :3, :3]), rel[:, :3, 3].copy(), period_s, stamp_at)
+
+
+def azimuth_times(points: np.ndarray, period_s: float, stamp_at: str = "first") -> np.ndarray:
+    """(N,) s relative to the stamp of a clockwise-spinning sensor's points in firing order: the sweep starts
+    at the first point's azimuth; azimuth falls with time (clockwise seen from above)."""
+    az = np.arctan2(points[:, 1], points[:, 0])
+    frac = np.mod(az[0] - az, 2 * np.pi) / (2 * np.pi)
+    t0, _ = sweep_span(period_s, stamp_at)
+    return (t0 + frac * period_s).astype(np.float32)
+
+
+def deskew(points: np.ndarray, times: np.ndarray, motion: SweepMotion) -> np.ndarray:
+    """(N, 3) float32 points moved to the sensor frame at the stamp: p' = R(t) p + T(t), with R, T
+    interpolated between the knots (times outside them take the end knots)."""
+    t = np.clip(np.asarray(times, np.float64), motion.times[0], motion.times[-1])
+    k = np.clip(np.searchsorted(motion.times, t, "right") - 1, 0, len(motion.times) - 2)
+    a = ((t - motion.times[k]) / (motion.times[k + 1] - motion.times[k]))[:, None]
+    rv = (1 - a) * motion.rotvecs[k] + a * motion.rotvecs[k + 1]
+    tr = (1 - a) * motion.translations[k] + a * motion.translations[k + 1]
+    return (_rotate(rv, np.asarray(points, np.float64)) + tr).astype(np.float32)
+
+
+def _rotate(rv: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Rotate each point p by its own rotation vector rv (Rodrigues), (N, 3) each."""
+    theta = np.linalg.norm(rv, axis=1, keepdims=True)
+    k = rv / np.maximum(theta, 1e-12)
+    c, s = np.cos(theta), np.sin(theta)
+    return p * c + np.cross(k, p) * s + k * np.einsum("ij,ij->i", k, p)[:, None] * (1 - c)

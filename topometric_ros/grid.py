@@ -1,0 +1,195 @@
+"""The scan grid of any LiDAR: each point's row (beam) and column (azimuth cell) of the sensor's range image.
+
+The grid is what segmentation projects onto and what the ring plane detector tiles; it is built once per
+scan from the SENSOR-frame points (before deskewing, so a point's cell is where the sensor fired it).
+
+Rows, 0 = the lowest beam, from the first of:
+1. the cloud's beam ids (``beam``: the ring field, else the row of an organised cloud), ordered by the
+   elevation their points show (Velodyne counts rings upward, Ouster downward: both come out bottom-up);
+2. a named sensor's beam table (sensors.py): each point to the beam of nearest elevation;
+3. the scan's own elevation clusters (no sensor named, no ring field): beams are the gaps in the sorted
+   elevations of the scan's far points;
+4. a non-repetitive pattern (a sensor named so, or a scan whose elevations form no beams): uniform
+   elevation bins, no beams needed, and as many azimuth cells as make them square (a sparse pattern then
+   puts a few points in each cell, which the tiles of the plane detector need).
+Columns: ``width`` azimuth cells of 2π / width, column 0 centred on the sensor's +x axis, counter-clockwise; width
+is the sensor's firings per revolution (named sensor, or the organised cloud's width, or estimated from
+the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+GRID_ALIGN = 8  # width multiple (the network folds 4 columns and halves them once)
+MAX_BEAMS = 256  # beam ids at or above this are bad (no LiDAR has more beams)
+NON_REPETITIVE_ROWS = 32  # elevation bins of a non-repetitive scan
+BEAM_GAP_DEG = 0.06  # deg, an empty elevation gap this wide between far points separates two beams
+CLUSTER_MIN_RANGE = 2.0  # m, points nearer than this do not place beams (beam-origin offsets blur them)
+MIN_BEAMS = 8  # fewer elevation clusters than this: no beam structure (non-repetitive)
+MAX_BEAM_WIDTH_DEG = 1.0  # deg, a wider cluster is not one beam (non-repetitive)
+SAMPLE = 5  # every 5th point is enough for a row's median elevation
+
+
+@dataclass
+class ScanGrid:
+    """Cells of a scan's points: row (N,) int32 (0 = lowest), col (N,) int32, the grid size, each row's
+    median elevation (deg, NaN when empty) and how the rows were found (``source``)."""
+
+    row: np.ndarray
+    col: np.ndarray
+    height: int
+    width: int
+    elevation_deg: np.ndarray
+    source: str
+
+    def subset(self, keep: np.ndarray) -> "ScanGrid":
+        """The grid of a subset of the points (index or mask array)."""
+        return ScanGrid(self.row[keep], self.col[keep], self.height, self.width, self.elevation_deg, self.source)
+
+
+def elevation_deg(points: np.ndarray) -> np.ndarray:
+    """(N,) elevation of sensor-frame points above the x-y plane, degrees."""
+    p = np.asarray(points, np.float64)
+    return np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+
+
+def azimuth_columns(points: np.ndarray, width: int) -> np.ndarray:
+    """(N,) azimuth cell of each point: round(atan2(y, x) / 2π · width) mod width (cell c centred on azimuth
+    c · 2π / width; column 0 at +x, counter-clockwise)."""
+    az = np.arctan2(points[:, 1], points[:, 0])
+    return (np.rint(az * np.float32(width / (2 * np.pi))).astype(np.int64) % width).astype(np.int32)
+
+
+def aligned(width: int) -> int:
+    """``width`` rounded up to a multiple of GRID_ALIGN (at least GRID_ALIGN)."""
+    return max(GRID_ALIGN, -(-int(width) // GRID_ALIGN) * GRID_ALIGN)
+
+
+def as_grid(points: np.ndarray, grid_or_beam=None, model=None) -> ScanGrid:
+    """``grid_or_beam`` when it is a ScanGrid, else the grid of the points with those (N,) beam ids (or none)."""
+    if isinstance(grid_or_beam, ScanGrid):
+        return grid_or_beam
+    return scan_grid(points, grid_or_beam, model=model)
+
+
+def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int = 0, model=None) -> ScanGrid:
+    """The grid of one scan: (N, 3) sensor-frame points (m), optional (N,) beam ids from the cloud (ids must be
+    < MAX_BEAMS; the Monitor drops points with bad ids), ``columns`` of an organised cloud (0 = unknown) and an
+    optional sensors.SensorModel. See the module docstring for the order in which rows are found."""
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    el = elevation_deg(pts)
+    if len(pts) == 0:
+        return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
+    non_repetitive = model is not None and model.pattern == "non_repetitive"
+    if beam is not None and not non_repetitive:
+        row, height, source = _rows_from_beams(np.asarray(beam).astype(np.int64), el, model)
+    elif model is not None and not non_repetitive:
+        row, height, source = _nearest(el, np.asarray(model.elevation_deg)), model.beams, f"{model.name} beam table"
+    else:
+        centres = None if non_repetitive else beam_centres(pts, el)
+        if centres is None:
+            fov = model.fov_deg if non_repetitive else (float(el.min()), float(el.max()))
+            rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
+            row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
+            columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
+        else:
+            row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
+    width = aligned(model.columns if model is not None else columns or _estimate_width(pts, row, height))
+    return ScanGrid(row.astype(np.int32), azimuth_columns(pts, width), int(height), width,
+                    _row_elevations(row, el, height), source)
+
+
+def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
+    """Columns that make a grid's cells as wide as they are tall: 360° over the row height."""
+    return int(round(360.0 / max((fov_deg[1] - fov_deg[0]) / rows, 1e-3)))
+
+
+def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarray, int, str]:
+    """Rows from the cloud's beam ids, bottom-up: kept as they are when the ids rise with elevation, reversed
+    when they fall (Ouster), else ranked by each id's median elevation."""
+    height = model.beams if model is not None else int(beam.max()) + 1
+    sub = slice(None, None, SAMPLE)
+    ids = np.unique(beam[sub])
+    med = _medians(beam[sub], el[sub], ids)
+    steps = np.diff(med)
+    if len(steps) == 0 or np.all(steps > 0):
+        return beam, height, "ring field"
+    if np.all(steps < 0):
+        return height - 1 - beam, height, "ring field (top-down, reversed)"
+    rank = np.empty(height, np.int64)
+    rank[ids[np.argsort(med, kind="stable")]] = np.arange(len(ids))
+    return rank[beam], len(ids), "ring field (ranked by elevation)"
+
+
+def _medians(beam: np.ndarray, el: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Median elevation per beam id, one sort instead of a mask per id."""
+    order = np.lexsort((el, beam))
+    b, e = beam[order], el[order]
+    start = np.searchsorted(b, ids, "left")
+    stop = np.searchsorted(b, ids, "right")
+    return e[(start + stop - 1) // 2]
+
+
+def beam_centres(points: np.ndarray, el: np.ndarray | None = None) -> np.ndarray | None:
+    """Elevations (deg, ascending) of the beams a spinning LiDAR's scan shows, or None when its elevations
+    form no beams (a non-repetitive pattern): the sorted elevations of points beyond CLUSTER_MIN_RANGE split
+    at gaps >= BEAM_GAP_DEG; near points far from every such beam (steep beams that only hit the floor close
+    by) add beams of their own."""
+    el = elevation_deg(points) if el is None else el
+    far = np.linalg.norm(points, axis=1) >= CLUSTER_MIN_RANGE
+    centres = _clusters(el[far] if far.sum() >= 100 else el)
+    if centres is None or len(centres) < MIN_BEAMS:
+        return None
+    spacing = float(np.median(np.diff(centres))) if len(centres) > 1 else 1.0
+    near = el[~far]
+    lone = near[np.abs(near[:, None] - centres[None]).min(axis=1) > max(BEAM_GAP_DEG, 0.4 * spacing)] if len(near) else near
+    extra = _clusters(lone, min_size=max(3, int(0.001 * len(el)))) if len(lone) else None
+    return centres if extra is None else np.sort(np.concatenate([centres, extra]))
+
+
+def _clusters(el: np.ndarray, min_size: int = 0) -> np.ndarray | None:
+    """Medians of the runs of sorted elevations split at gaps >= BEAM_GAP_DEG (runs below 2 % of the median
+    run, or ``min_size``, dropped), or None when a run is wider than one beam can be."""
+    e = np.sort(el)
+    if len(e) < 2:
+        return None
+    parts = np.split(e, np.flatnonzero(np.diff(e) >= BEAM_GAP_DEG) + 1)
+    sizes = np.array([len(p) for p in parts])
+    parts = [p for p in parts if len(p) >= max(3, min_size, 0.02 * np.median(sizes))]
+    if not parts or max(p[-1] - p[0] for p in parts) > MAX_BEAM_WIDTH_DEG:
+        return None
+    return np.array([np.median(p) for p in parts])
+
+
+def _nearest(el: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Index of the nearest of ascending ``centres`` for each elevation."""
+    return np.searchsorted((centres[1:] + centres[:-1]) / 2, el).astype(np.int64)
+
+
+def _bins(el: np.ndarray, fov: tuple[float, float], rows: int) -> np.ndarray:
+    lo, hi = fov
+    return np.clip(np.floor((el - lo) / max(hi - lo, 1e-6) * rows), 0, rows - 1).astype(np.int64)
+
+
+def _estimate_width(points: np.ndarray, row: np.ndarray, height: int) -> int:
+    """Firings per revolution of an unorganised scan: 2π over the median azimuth step between neighbouring
+    points of its three fullest rows (dropouts leave the median step alone)."""
+    counts = np.bincount(row, minlength=height)
+    steps = []
+    for r in np.argsort(counts)[-3:]:
+        p = points[row == r]
+        if len(p) > 8:
+            steps.append(np.diff(np.sort(np.arctan2(p[:, 1], p[:, 0]))))
+    step = float(np.median(np.concatenate(steps))) if steps else 0.0
+    return int(round(2 * np.pi / step)) if step > 0 else int(max(counts.max(), 1))
+
+
+def _row_elevations(row: np.ndarray, el: np.ndarray, height: int) -> np.ndarray:
+    """(height,) median elevation of each row's points (deg), NaN for empty rows."""
+    out = np.full(height, np.nan)
+    sub = slice(None, None, SAMPLE)
+    present = np.unique(row[sub])
+    out[present] = _medians(row[sub], el[sub], present)
+    return out

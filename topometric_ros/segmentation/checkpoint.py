@@ -1,0 +1,124 @@
+"""The weights file of the segmentation network: what infer.py loads and train.py writes.
+
+A weights file is a torch file {'model_card': dict, 'state_dict': tensors, 'state_sha256': digest} read with
+``torch.load(weights_only=True)`` (no arbitrary code runs), checked key by key and shape by shape against
+the net the card describes; a model_card.json beside it may pin the file's sha256. Any problem raises
+SegmentationError with the reason.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from .. import classes as C
+from .model import ModelSpec, RangeNet
+
+WEIGHTS_NAME, CARD_NAME = "rangenet.pt", "model_card.json"
+FORMAT_VERSION = 1
+SHIPPED = Path(__file__).resolve().parent / "weights" / WEIGHTS_NAME
+
+
+class SegmentationError(ValueError):
+    """Weights that are missing, unreadable, tampered with or do not fit the network; bad device."""
+
+
+def load_weights(path: str | Path) -> tuple[dict, dict]:
+    """(model card, state dict) of a weights file, loaded without executing code."""
+    path = Path(path)
+    if not path.is_file():
+        raise SegmentationError(f"segmentation weights not found: {path}")
+    try:
+        doc = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # UnpicklingError, RuntimeError (zip), EOFError, ... for garbage or unsafe pickles
+        raise SegmentationError(f"cannot load segmentation weights {path}: not a safe torch weights file "
+                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("model_card"), dict) or not isinstance(doc.get("state_dict"), dict):
+        raise SegmentationError(f"{path}: expected {{'model_card': dict, 'state_dict': dict}}, got {type(doc).__name__}"
+                                + (f" with keys {sorted(map(str, doc))}" if isinstance(doc, dict) else ""))
+    _check_checksum(path)
+    state = doc["state_dict"]
+    bad = [str(k) for k, v in state.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
+    if bad:
+        raise SegmentationError(f"{path}: state dict entries that are not named tensors: {bad[:5]}")
+    _check_state_digest(state, doc.get("state_sha256"), str(path))
+    return doc["model_card"], state
+
+
+def _check_state_digest(state: dict, digest: object, source: str) -> None:
+    """The tensors must hash to the digest saved with them (catches modified or corrupted weights)."""
+    if not isinstance(digest, str):
+        raise SegmentationError(f"{source}: no state_sha256 digest; not a weights file written by topometric train")
+    if state_digest(state) != digest:
+        raise SegmentationError(f"{source}: tensor checksum mismatch; the weights were modified or corrupted")
+
+
+def _check_checksum(path: Path) -> None:
+    """When a model_card.json next to the weights names their sha256, the file must match it."""
+    card_path = path.parent / CARD_NAME
+    if not card_path.is_file():
+        return
+    try:
+        want = json.loads(card_path.read_text()).get("weights", {})
+    except (json.JSONDecodeError, AttributeError):
+        raise SegmentationError(f"{card_path}: not a valid model card (JSON)") from None
+    if want.get("file") == path.name and want.get("sha256"):
+        got = hashlib.sha256(path.read_bytes()).hexdigest()
+        if got != want["sha256"]:
+            raise SegmentationError(f"{path}: sha256 {got[:12]}… does not match {card_path} ({want['sha256'][:12]}…); "
+                                    "the weights were modified")
+
+
+def build_model(card: dict, state: dict, source: str = "weights") -> RangeNet:
+    """The network the card describes with ``state`` loaded, after checking every key and shape."""
+    if card.get("format_version") != FORMAT_VERSION:
+        raise SegmentationError(f"{source}: model card format {card.get('format_version')!r}, expected {FORMAT_VERSION}")
+    if list(card.get("classes", [])) != list(C.NAMES):
+        raise SegmentationError(f"{source}: classes {card.get('classes')} differ from {list(C.NAMES)}")
+    try:
+        spec = ModelSpec.from_dict(card["model"])
+        model = RangeNet(spec)
+    except Exception as e:  # wrong types or sizes in the card
+        raise SegmentationError(f"{source}: model card does not describe a valid network: {e}") from None
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    extra = sorted(set(state) - set(expected))
+    if missing or extra:
+        raise SegmentationError(f"{source}: state dict does not fit the network: missing {missing[:5]}, "
+                                f"unexpected {extra[:5]}")
+    for k, v in expected.items():
+        got = state[k]
+        if not isinstance(got, torch.Tensor) or got.shape != v.shape or got.dtype != v.dtype:
+            desc = f"{tuple(got.shape)} {got.dtype}" if isinstance(got, torch.Tensor) else type(got).__name__
+            raise SegmentationError(f"{source}: tensor {k!r} is {desc}, the network needs {tuple(v.shape)} {v.dtype}")
+        if v.is_floating_point() and not torch.isfinite(got).all():
+            raise SegmentationError(f"{source}: tensor {k!r} has non-finite values")
+    model.load_state_dict(state)
+    return model.eval().set_circular(True)
+
+
+def state_digest(state: dict) -> str:
+    """sha256 over the names, dtypes, shapes and bytes of a state dict's tensors (sorted by name)."""
+    h = hashlib.sha256()
+    for k in sorted(state):
+        v = state[k].detach().cpu().contiguous()
+        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
+        h.update(v.reshape(-1).view(torch.uint8).numpy().tobytes() if v.numel() else b"")
+    return h.hexdigest()
+
+
+def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
+    """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
+    OUT/model_card.json = card + the file's sha256."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / WEIGHTS_NAME
+    state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
+    card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
+    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
+    doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+                               "bytes": path.stat().st_size}}
+    (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
+    return path
