@@ -40,13 +40,14 @@ TICK = os.sysconf("SC_CLK_TCK")
 
 
 def _bag(seconds: float) -> Path:
+    from topometric_ros.bag import load_truth
     from topometric_ros.sim.drift import DriftSpec
-    from topometric_ros.sim.writer import SimConfig, load_truth, simulate
+    from topometric_ros.sim.writer import SIM_VERSION, SimConfig, simulate
 
     frames = int(seconds * RATE_HZ)
     path = OUT / "bags" / f"garage_rt15_{frames}_10hz"
     truth = load_truth(path)
-    if truth is None or truth["frames"] != frames:
+    if truth is None or truth["frames"] != frames or truth.get("simulator") != SIM_VERSION:
         shutil.rmtree(path, ignore_errors=True)
         print(f"  simulating {frames} scans at {RATE_HZ:g} Hz ...", flush=True)
         simulate(SimConfig(scene="garage", frames=frames, rate=RATE_HZ, drift=DriftSpec.parse("rt:1.5")), path,
