@@ -1,4 +1,6 @@
-"""Run benchmarks by name: ``python -m benchmarks`` (all) or ``python -m benchmarks sim``."""
+"""Run benchmarks by name: ``python -m benchmarks`` (all but node) or ``python -m benchmarks sim``.
+
+``python -m benchmarks node`` runs the ROS 2 node live; it needs rclpy (source a ROS 2 Jazzy first)."""
 import importlib
 import sys
 

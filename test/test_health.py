@@ -7,7 +7,7 @@ import pytest
 from topometric_ros import bag
 from topometric_ros.config import HealthConfig
 from topometric_ros.health import (STATUS_NAME, Health, diagnostic_array, diagnostic_status, from_scale,
-                                   window_values)
+                                   status_name, window_values)
 from topometric_ros.pipeline import WindowResult
 
 
@@ -137,7 +137,7 @@ def test_diagnostics_messages_round_trip_through_cdr():
     r = result(pne=1.234567891, cpv=0.0123)
     r.level, r.message = "WARN", "rotation drift: PNE 5.0σ above baseline"
     values = window_values(r, {"dropped_windows": 2, "scans_in": 10}, {"rpe_estimate": 0.5})
-    assert values["pne"] == "1.23457" and values["dropped_windows"] == "2" and values["window_end"] == "0.8"
+    assert values["pne"] == "1.234567891" and values["dropped_windows"] == "2" and values["window_end"] == "0.8"
     status = diagnostic_status(types, r.level, r.message, values, hardware_id="velodyne")
     arr = diagnostic_array(types, 1_700_000_000.25, [status])
     store = bag.typestore()
@@ -148,6 +148,37 @@ def test_diagnostics_messages_round_trip_through_cdr():
     assert {kv.key: kv.value for kv in s.values}["rpe_estimate"] == "0.5"
     with pytest.raises(ValueError):
         diagnostic_status(types, "BAD", "", {})
+
+
+def test_key_values_keep_full_precision():
+    """Stamps of today's clock (1.7e9 s) and every float read back bit for bit (6 digits would give 1.7e+09)."""
+    r = result(pne=-2.718281828459045, cpv=1.0 / 3.0, t=1_700_000_012.2)
+    r.timings["latency"] = float("nan")
+    values = window_values(r, {"scans_in": 10})
+    assert values["window_start"] == "1700000012.2" and float(values["window_end"]) == 1_700_000_012.2 + 0.8
+    for key in ("pne", "cpv", "window_start", "window_end"):
+        assert float(values[key]) == {"pne": r.pne, "cpv": r.cpv, "window_start": r.stamps[0],
+                                      "window_end": r.stamps[-1]}[key]
+    assert values["latency_ms"] == "nan" and values["scans_in"] == "10"
+    assert window_values(result(pne=np.float32(0.1)))["pne"] == repr(float(np.float32(0.1)))
+
+
+def test_status_names_follow_diagnostic_updater():
+    assert STATUS_NAME == "topometric_monitor: map consistency"
+    assert status_name("robot1_monitor") == "robot1_monitor: map consistency"
+
+
+def test_failing_needs_every_scan_failing_for_fail_after_s():
+    """Scans arrive but each one fails: ERROR once the streak lasts health.fail_after_s, with counters and
+    the last error; a success ends the streak (the Monitor resets failing_since)."""
+    h = Health(HealthConfig(fail_after_s=1.0))
+    counters = {"scans_in": 7, "scan_errors": 6, "dropped_bad_scan": 0}
+    assert h.failing(10.0, None, 5.0, "", counters) is None  # the newest scan succeeded
+    assert h.failing(10.9, 10.0, 5.0, "boom", counters) is None  # not long enough yet
+    level, why = h.failing(11.0, 10.0, 5.0, "labels mode: no label field", counters)
+    assert level == "ERROR" and why == ("no scan processed for 6.0 s, every scan fails (scan_errors 6): "
+                                        "labels mode: no label field")
+    assert h.failing(11.0, 10.0, None, "x", counters)[1].startswith("no scan processed yet")
 
 
 def test_persistence_ignores_one_odd_window_but_warns_on_the_second():

@@ -380,3 +380,70 @@ def test_pipelined_stages_give_exactly_the_serial_windows(sim_frames, mode):
         for x, y in zip(pa, pb):
             for u, v in zip(x, y):
                 np.testing.assert_array_equal(u, v)
+
+
+def scan_at(m, t, labels=None, received=None):
+    """One floor scan at stamp t, with odometry around it (so only the scan itself can fail)."""
+    for tp in (t - 0.05, t + 0.1):
+        m.add_pose(tp, base_pose(tp), received=None if received is None else received + tp - t)
+    return m.add_scan(t, floor_points(), labels=labels, received=received)
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_every_scan_failing_is_an_error_with_the_reason(live):
+    """Never silent: labels mode on scans without labels (the real pipeline) fails every scan; after
+    health.fail_after_s of the caller's clock the check says ERROR with the counters and the reason, while
+    STALE stays quiet (scans do arrive). One good scan ends it."""
+    cfg = config(**{"segmentation.mode": "labels", "health.fail_after_s": 1.0, "window.pose_wait_s": 0.0})
+    with Monitor(cfg, live=live) as m:
+        for k in range(8):
+            scan_at(m, 100.0 + k / 5, received=500.0 + k / 5)
+        m.flush()
+        assert m.counters["scan_errors"] == 8 and m.counters["scans_processed"] == 0
+        assert m.failing_since == 500.0 and m.check(500.9) is None
+        level, why = m.check(501.4)
+        assert level == "ERROR" and why.startswith("no scan processed yet, every scan fails (scan_errors 8)")
+        assert "segmentation mode 'labels' but the cloud has no label field" in why
+        scan_at(m, 102.0, labels=np.full(200, 1, np.uint8), received=502.0)
+        m.flush()
+        assert m.counters["scans_processed"] == 1 and m.failing_since is None and m.check(502.5) is None
+        scan_at(m, 102.2, received=502.2)  # failing again: the streak restarts at this scan
+        m.flush()
+        assert m.check(503.1) is None and m.check(503.2)[1].startswith("no scan processed for 1.2 s")
+
+
+def test_malformed_clouds_and_missing_poses_are_failures_too():
+    types = rosbags_types(bag.typestore())
+    m = Monitor(config(**{"health.fail_after_s": 0.5}), floor_scan, floor_window)
+    bad = make_cloud({"x": np.zeros(3, np.float32), "y": np.zeros(3, np.float32)}, 10.0, "velodyne", types)
+    for k in range(3):
+        m.add_cloud(bad, received=20.0 + k / 10)
+    level, why = m.check(20.6)  # no odometry either: STALE, and the scans' failure beside it
+    assert level == "STALE" and why.startswith("no odometry yet; no scan processed yet") and "malformed" in why
+    m.add_pose(10.0, base_pose(10.0), received=20.5)
+    level, why = m.check(20.6)
+    assert level == "ERROR" and "dropped_bad_scan 3" in why and "malformed cloud" in why
+    m2 = Monitor(config(**{"health.fail_after_s": 0.5}), floor_scan, floor_window)
+    for k in range(12):  # odometry stamped in another time base (received now): no pose for any scan
+        m2.add_pose(k / 5, base_pose(k / 5), received=1000.0 + k / 5)
+        m2.add_scan(1000.0 + k / 5, floor_points(), received=1000.0 + k / 5)
+    m2.flush()
+    assert m2.counters["dropped_no_pose"] == 12
+    assert "no odometry within" in m2.check(1002.4)[1] and "dropped_no_pose 12" in m2.check(1002.4)[1]
+
+
+def test_stamps_going_back_do_not_end_a_failure_streak_while_the_receive_clock_goes_on():
+    """Odometry stamps that keep going backwards (time resets) while every scan fails: the receive clock
+    (node clock) goes on, so the streak stands and the check says ERROR; a clock that goes back with
+    them (sim time reset) forgets the streak."""
+    m = Monitor(config(**{"segmentation.mode": "labels", "health.fail_after_s": 1.0}))
+    for k in range(15):
+        t, r = 100.0 + k / 10, 500.0 + k / 10
+        m.add_pose(t - 0.05, base_pose(t), received=r)
+        m.add_pose(t + 0.15, base_pose(t), received=r)
+        m.add_scan(t, floor_points(), received=r)
+    m.flush()
+    assert m.counters["time_resets"] >= 10 and m.counters["scan_errors"] >= 1
+    assert m.check(501.5)[0] == "ERROR"
+    m.add_pose(50.0, base_pose(50.0), received=20.0)  # sim time jumped back with the stamps
+    assert m.failing_since is None

@@ -1,113 +1,582 @@
-"""The ROS 2 node, in-process with real rclpy publishers and subscribers (skips where rclpy is missing;
-runs under ``colcon test`` in a ROS 2 Jazzy workspace).
+"""The ROS 2 node as it runs on a robot: real processes over real DDS (skipped where rclpy does not import).
 
-A simulated bag is published message by message on /points, /odom and /tf_static; the node must publish
-DiagnosticArray windows on /diagnostics with the conventional name and hardware_id, and reject
-out-of-range parameters. Segmentation uses the bag's labels and the per-window work is the real pipeline."""
+The node runs as its own process (``python -m topometric_ros.node``, or through ``ros2 launch``); a
+simulated bag goes in through test/ros_player.py (another process: /tf_static latched, clouds with the
+sensor-data QoS, odometry reliable, at real rate with /clock) or, for hand-made scans, through publishers
+in this process; this process listens on /diagnostics, ~/planes and /diagnostics_agg. Every test uses its
+own DDS domain on localhost. Segmentation uses the simulated clouds' label field (``segmentation.mode:
+labels``) to keep the CPU low.
+
+Live levels versus ``topometric replay`` of the same bag (one Monitor, one Health): replay processes every
+scan in order, the node only the scans that reach it in time, so they may differ where the live node
+drops a scan (best-effort transport, a full queue under load: a window then holds other scans) or where a
+scan's odometry does not come within window.pose_wait_s (the scan waits until pose_timeout_s or is
+dropped); with a different window sequence the rolling baseline differs too. On a quiet machine none of
+that happens and the levels agree window for window; the test asks >= 95 %.
+"""
+from __future__ import annotations
+
 import array
+import json
+import os
+import random
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
-rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("rclpy", reason="rclpy is not importable: source a ROS 2 Jazzy "
+                                    "(source /opt/ros/jazzy/setup.bash) to run the node tests")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy.exceptions import InvalidParameterValueException  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
-from builtin_interfaces.msg import Time  # noqa: E402
-from tf2_msgs.msg import TFMessage  # noqa: E402
-from types import SimpleNamespace  # noqa: E402
-
-from topometric_ros import bag, geometry  # noqa: E402
-from topometric_ros.cloud import make_cloud, read_cloud  # noqa: E402
-from topometric_ros.node import MonitorNode  # noqa: E402
-
-RCL_TYPES = SimpleNamespace(PointCloud2=PointCloud2, PointField=PointField, Header=Header, Time=Time)
+ROOT = Path(__file__).resolve().parents[1]
+PLAYER = Path(__file__).resolve().parent / "ros_player.py"
+NODE = "topometric_monitor"
+CONSISTENCY = f"{NODE}: map consistency"
+LEVEL_NAMES = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+BASE = {"segmentation.mode": "labels", "window.size": 5, "health.stale_after_s": 3.0}
+BASE_WINDOWS = 10  # health.baseline_windows (default): windows before the sigma alarms start
 
 
-@pytest.fixture
-def ros():
+# -------------------------------------------------------------------- processes and DDS
+@pytest.fixture(scope="module")
+def ros_env():
+    """A DDS domain of this module's own, on localhost; rclpy up in this process."""
+    import rclpy
+
+    keep = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "PYTHONUNBUFFERED")}
+    os.environ["ROS_DOMAIN_ID"] = str(random.Random(os.getpid()).randint(20, 99))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["PYTHONUNBUFFERED"] = "1"
     rclpy.init()
     yield
     rclpy.shutdown()
+    for k, v in keep.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
 
 
-def _to_rclpy_cloud(msg):
-    fields = read_cloud(msg)
-    return make_cloud(fields, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, msg.header.frame_id,
-                      RCL_TYPES, data=lambda d: array.array("B", d.tobytes()), align=4)
+class Proc:
+    """A child process in its own session (so SIGINT reaches it and its children), output in files."""
+
+    def __init__(self, args: list[str], tmp: Path, name: str, env: dict | None = None):
+        self.out, self.name = tmp / f"{name}.log", name
+        self.popen = subprocess.Popen(args, stdout=open(self.out, "w"), stderr=subprocess.STDOUT,
+                                      start_new_session=True, env={**os.environ, **(env or {})}, cwd=ROOT)
+
+    def log(self) -> str:
+        return self.out.read_text()
+
+    def sigint(self, timeout: float = 10.0) -> tuple[int | None, float]:
+        """SIGINT to the process group; (exit code or None when it had to be killed, seconds to exit)."""
+        t0 = time.monotonic()
+        if self.popen.poll() is None:
+            os.killpg(self.popen.pid, signal.SIGINT)
+        try:
+            code = self.popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait()
+            code = None
+        return code, time.monotonic() - t0
+
+    def stop(self) -> None:
+        """Make sure nothing of it is left (also after a failed test)."""
+        if self.popen.poll() is None:
+            self.sigint()
+        try:
+            os.killpg(self.popen.pid, signal.SIGKILL)  # children that outlived the leader
+        except ProcessLookupError:
+            pass
 
 
-def _to_rclpy_odom(msg):
-    stamp, pose = bag.odometry_pose(msg)
+def write_params(path: Path, values: dict) -> Path:
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": values}}))
+    return path
+
+
+def start_node(tmp: Path, params: dict, name: str = "node", extra: list[str] = ()) -> Proc:
+    """The node as a process, with ``params`` in a parameter file (top key /**)."""
+    f = write_params(tmp / f"{name}.yaml", params)
+    return Proc([sys.executable, "-m", "topometric_ros.node", "--ros-args", "--params-file", str(f), *extra],
+                tmp, name)
+
+
+class Listener:
+    """An rclpy node in this process, spun in a thread, recording messages with their wall receive time."""
+
+    def __init__(self, topics: dict):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.node = rclpy.create_node(f"test_listener_{os.getpid()}")
+        self.got: dict[str, list] = {t: [] for t in topics}
+        self.lock = threading.Lock()
+        for topic, kind in topics.items():
+            self.node.create_subscription(kind, topic, self._keep(topic),
+                                          QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _keep(self, topic):
+        def cb(msg):
+            with self.lock:
+                self.got[topic].append((time.time(), msg))
+        return cb
+
+    def _spin(self):
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def messages(self, topic: str) -> list:
+        with self.lock:
+            return list(self.got[topic])
+
+    def wait_for(self, topic: str, pred, timeout: float, proc: Proc | None = None):
+        """First (time, msg) on topic with pred(msg), waiting up to timeout s (fails early if proc died)."""
+        end = time.monotonic() + timeout
+        seen = 0
+        while time.monotonic() < end:
+            msgs = self.messages(topic)
+            for t, m in msgs[seen:]:
+                if pred(m):
+                    return t, m
+            seen = len(msgs)
+            if proc is not None and proc.popen.poll() is not None:
+                pytest.fail(f"{proc.name} exited with {proc.popen.returncode}:\n{proc.log()[-3000:]}")
+            time.sleep(0.05)
+        return None
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def statuses(listener: Listener, name: str = CONSISTENCY) -> list:
+    """(receive time, header stamp s, status) of every status called ``name`` on /diagnostics."""
+    out = []
+    for t, arr in listener.messages("/diagnostics"):
+        stamp = arr.header.stamp.sec + 1e-9 * arr.header.stamp.nanosec
+        out += [(t, stamp, s) for s in arr.status if s.name == name]
+    return out
+
+
+def level(status) -> str:
+    value = status.level
+    return LEVEL_NAMES[value[0] if isinstance(value, (bytes, bytearray)) else int(value)]
+
+
+def values(status) -> dict:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def has_status(name: str):
+    return lambda arr: any(s.name == name for s in arr.status)
+
+
+def windows_of(listener: Listener) -> list[dict]:
+    """One record per window (by window_end), as replay's windows.json has them."""
+    seen = {}
+    for _, _, s in statuses(listener):
+        v = values(s)
+        if "window_end" in v:
+            seen.setdefault(float(v["window_end"]), {"start": float(v["window_start"]), "end": float(v["window_end"]),
+                                                     "level": level(s), "message": s.message, "values": v})
+    return [seen[k] for k in sorted(seen)]
+
+
+# -------------------------------------------------------------------- the drift bag, live and replayed
+@pytest.fixture(scope="module")
+def drift_bag(tmp_path_factory):
+    """A 40 s garage bag at 5 Hz with one rotation+translation drift episode (20.0-29.3 s)."""
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig, simulate
+
+    path = tmp_path_factory.mktemp("nodebag") / "garage_rt"
+    summary = simulate(SimConfig(scene="garage", frames=200, rate=5.0, drift=DriftSpec.parse("rt:1.5")), path,
+                       progress=False)
+    return path, summary
+
+
+@pytest.fixture(scope="module")
+def drift_run(ros_env, drift_bag, tmp_path_factory):
+    """`topometric replay` of the bag, then the node on use_sim_time fed by the player at real rate with
+    /clock (going on 8 s after the data), then SIGINT. Everything the tests below look at."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from visualization_msgs.msg import MarkerArray
+
+    from topometric_ros.config import load_config
+    from topometric_ros.replay import ReplayOptions, replay
+
+    bag_path, summary = drift_bag
+    tmp = tmp_path_factory.mktemp("drift_run")
+    params = {**BASE, "use_sim_time": True, "publish_markers": True}
+    cfg = load_config(overrides={k: v for k, v in params.items() if "." in k})
+    replayed = replay(bag_path, tmp / "replay", cfg, ReplayOptions(plot=False, progress=False)).windows
+    listener = Listener({"/diagnostics": DiagnosticArray, f"/{NODE}/planes": MarkerArray})
+    node = start_node(tmp, params)
+    player = None
+    try:
+        # the node answers on /diagnostics once /clock runs; the player waits for its subscriptions first
+        player = Proc([sys.executable, str(PLAYER), str(bag_path), "--clock", "--clock-tail", "8",
+                       "--wait-subscribers", "60"], tmp, "player")
+        t_play = time.time()
+        player.popen.wait(120)
+        played = json.loads(player.log().strip().splitlines()[-1])
+        stale = listener.wait_for("/diagnostics", lambda a: any(
+            s.name == CONSISTENCY and level(s) == "STALE" and s.message.startswith("no scans for") for s in a.status),
+            10, node)
+        code, exit_s = node.sigint()
+        live = windows_of(listener)
+        brief = lambda ws: [{"end": w["end"], "level": w["level"]} for w in ws]  # noqa: E731
+        (tmp / "windows.json").write_text(json.dumps({"live": brief(live), "replay": brief(replayed)}))
+        return {"replay": replayed, "live": live, "summary": summary, "listener": listener,
+                "played": played, "t_play": t_play, "stale": stale, "exit": (code, exit_s), "log": node.log(),
+                "statuses": statuses(listener), "markers": listener.messages(f"/{NODE}/planes")}
+    finally:
+        node.stop()
+        if player is not None:
+            player.stop()
+        listener.close()
+
+
+def test_drift_bag_alarms_inside_every_episode_and_ok_elsewhere(drift_run):
+    """Every episode alarmed (WARN/ERROR) within 2 windows of its start; after the baseline, every window
+    clear of the episodes (2 s either side) is OK."""
+    from topometric_ros.experiments.alarms import episode_hits
+
+    live, episodes = drift_run["live"], drift_run["summary"]["episodes"]
+    assert len(live) >= 36, f"only {len(live)} of 40 windows reached /diagnostics"
+    assert drift_run["played"]["published"]["/points"] == 200
+    hits = episode_hits(live, episodes, within=2)
+    assert episodes and all(h["detected"] for h in hits), hits
+    calm = [w for w in live[BASE_WINDOWS:] if not any(w["end"] > ep["start"] - 2 and w["start"] < ep["end"] + 2
+                                                      for ep in episodes)]
+    assert len(calm) >= 10 and all(w["level"] == "OK" for w in calm), [(w["end"], w["level"]) for w in calm]
+
+
+
+def test_drift_bag_levels_equal_replay_in_95_percent_of_windows(drift_run):
+    """Windows matched by window_end (full precision: the same stamp reads back the same double)."""
+    replayed = {w["end"]: w["level"] for w in drift_run["replay"]}
+    live = {w["end"]: w["level"] for w in drift_run["live"]}
+    common = set(replayed) & set(live)
+    assert len(common) >= 0.9 * len(replayed), (len(common), len(replayed), sorted(live))
+    same = sum(replayed[k] == live[k] for k in common)
+    assert same >= 0.95 * len(common), [(k, replayed[k], live[k]) for k in sorted(common) if replayed[k] != live[k]]
+
+
+def test_use_sim_time_stamps_in_bag_time_and_stale_when_input_stops(drift_run):
+    """On use_sim_time every status is stamped in bag time (/clock), not wall time; once the data stops
+    and /clock goes on, STALE comes within health.stale_after_s (3 s) + the check period."""
+    from topometric_ros.sim.writer import START_TIME
+
+    bag_end = START_TIME + 199 / 5.0  # stamp of the last scan
+    stamps = [stamp for _, stamp, _ in drift_run["statuses"] if stamp > 0]  # 0: before the first /clock
+    assert len(stamps) >= 40 and all(START_TIME - 1 <= s <= bag_end + 9 for s in stamps), (min(stamps), max(stamps))
+    assert drift_run["stale"] is not None, "no STALE after the input stopped"
+    arr = drift_run["stale"][1]
+    st = next(s for s in arr.status if s.name == CONSISTENCY)
+    stamp = arr.header.stamp.sec + 1e-9 * arr.header.stamp.nanosec
+    assert "no scans for" in st.message and bag_end + 3.0 <= stamp <= bag_end + 4.5, (st.message, stamp - bag_end)
+
+
+def test_sigint_exits_0_within_2_s_with_workers_joined(drift_run):
+    code, seconds = drift_run["exit"]
+    assert code == 0 and seconds < 2.0, (code, seconds, drift_run["log"][-2000:])
+    assert "worker threads left: 0" in drift_run["log"]
+
+
+def test_statuses_follow_diagnostic_updater_conventions(drift_run):
+    """'<node>: <task>' names, hardware_id from the cloud frame, a scan-rate FrequencyStatus near 5 Hz, a
+    latency status, and window values at full precision."""
+    sts = drift_run["statuses"]
+    assert {s.hardware_id for _, _, s in sts} >= {"velodyne"}
+    names = {s.name for _, arr in drift_run["listener"].messages("/diagnostics") for s in arr.status}
+    assert {CONSISTENCY, f"{NODE}: scan rate", f"{NODE}: latency"} <= names
+    rate_sts = statuses(drift_run["listener"], f"{NODE}: scan rate")
+    rates = [float(values(s)["Actual frequency (Hz)"]) for _, _, s in rate_sts
+             if level(s) == "OK" and "Actual frequency (Hz)" in values(s)]
+    assert rates and abs(np.median(rates) - 5.0) < 0.5, rates
+    lat = [float(values(s)["max_s"]) for _, _, s in statuses(drift_run["listener"], f"{NODE}: latency")
+           if values(s).get("windows", "0") != "0"]
+    assert lat and np.median(lat) < 1.0, lat  # stamp -> window result in sim time
+    w = drift_run["live"][5]
+    assert re.fullmatch(r"1700000\d\d\d\.\d+", w["values"]["window_start"]), w["values"]["window_start"]
+
+
+def test_markers_are_in_the_map_frame(drift_run):
+    arrays = [m for _, m in drift_run["markers"]]
+    assert len(arrays) >= 30
+    cubes = [m for a in arrays for m in a.markers if m.type == m.CUBE]
+    assert cubes and {m.header.frame_id for m in cubes} == {"map"}
+    bad = [(m.scale.x, m.scale.y) for m in cubes if not (0 < m.scale.y <= m.scale.x < 250)]  # 120 m range
+    assert not bad, bad
+
+
+# -------------------------------------------------------------------- hand-made scans
+def rclpy_cloud(points: np.ndarray, stamp: float, frame: str, labels: np.ndarray | None = None):
+    from builtin_interfaces.msg import Time
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Header
+    from types import SimpleNamespace
+
+    from topometric_ros.cloud import make_cloud
+
+    types = SimpleNamespace(PointCloud2=PointCloud2, PointField=PointField, Header=Header, Time=Time)
+    fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
+    if labels is not None:
+        fields["label"] = labels
+    return make_cloud({k: np.ascontiguousarray(v) for k, v in fields.items()}, stamp, frame, types,
+                      data=lambda d: array.array("B", d.tobytes()), align=4)
+
+
+def rclpy_odom(stamp: float, pose: np.ndarray, frame="map", child="base_link"):
+    from nav_msgs.msg import Odometry
+
+    from topometric_ros import geometry
+
     q, t = geometry.pose_to_quat(pose)
     o = Odometry()
-    o.header.frame_id, o.child_frame_id = msg.header.frame_id, msg.child_frame_id
-    o.header.stamp = Time(sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec)
+    o.header.frame_id, o.child_frame_id = frame, child
+    ns = int(stamp * 1e9)
+    o.header.stamp.sec, o.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
     o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z = map(float, t)
     o.pose.pose.orientation.x, o.pose.pose.orientation.y, o.pose.pose.orientation.z, o.pose.pose.orientation.w = \
         map(float, q)
     return o
 
 
-def _to_rclpy_tf(msg):
-    from geometry_msgs.msg import TransformStamped
+class Feeder:
+    """Publishers of this process on /points (sensor data), /odom (reliable) and /tf_static (latched)."""
 
-    out = TFMessage()
-    for tf in msg.transforms:
+    def __init__(self, listener: Listener, sensor_offset=(0.0, 0.0, 0.5)):
+        from geometry_msgs.msg import TransformStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+        from tf2_msgs.msg import TFMessage
+
+        node = listener.node
+        self.points = node.create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
+        self.odom = node.create_publisher(Odometry, "/odom", 10)
+        self.tf = node.create_publisher(TFMessage, "/tf_static", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         t = TransformStamped()
-        t.header.frame_id, t.child_frame_id = tf.header.frame_id, tf.child_frame_id
-        for a in "xyz":
-            setattr(t.transform.translation, a, float(getattr(tf.transform.translation, a)))
-        for a in "xyzw":
-            setattr(t.transform.rotation, a, float(getattr(tf.transform.rotation, a)))
-        out.transforms.append(t)
-    return out
+        t.header.frame_id, t.child_frame_id = "base_link", "lidar"
+        t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = map(float, sensor_offset)
+        t.transform.rotation.w = 1.0
+        self.tf.publish(TFMessage(transforms=[t]))
+        self.sensor_offset = np.array(sensor_offset)
+        self.last_odom = 0.0
+
+    def wait_matched(self, timeout=20.0):
+        end = time.monotonic() + timeout
+        matched = lambda: self.points.get_subscription_count() and self.odom.get_subscription_count()  # noqa: E731
+        while time.monotonic() < end and not matched():
+            time.sleep(0.05)
+        assert matched(), "the node did not subscribe to /points and /odom"
+
+    def scan(self, points, pose, labels=None, now=None):
+        """Odometry just before and after ``now`` (s, wall), then the cloud stamped ``now``."""
+        now = time.time() if now is None else now
+        for t in (now - 0.05, now + 0.15):
+            if t > self.last_odom:  # odometry stamps only go forward
+                self.odom.publish(rclpy_odom(t, pose))
+                self.last_odom = t
+        self.points.publish(rclpy_cloud(points, now, "lidar", labels))
 
 
-def test_node_publishes_window_diagnostics(ros, office_bag):
-    bag_path, _ = office_bag
-    node = MonitorNode(parameter_overrides=[Parameter("segmentation.mode", value="labels"),
-                                            Parameter("window.size", value=5),
-                                            Parameter("health.baseline_windows", value=2)])
-    peer = rclpy.create_node("topometric_test_peer")
-    got = []
-    peer.create_subscription(DiagnosticArray, "/diagnostics", got.append, 10)
-    latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pubs = {"/points": peer.create_publisher(PointCloud2, "/points", qos_profile_sensor_data),
-            "/odom": peer.create_publisher(Odometry, "/odom", 10),
-            "/tf_static": peer.create_publisher(TFMessage, "/tf_static", latched)}
-    convert = {"/points": _to_rclpy_cloud, "/odom": _to_rclpy_odom, "/tf_static": _to_rclpy_tf}
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    executor.add_node(peer)
-    for _ in range(20):  # let discovery settle
-        executor.spin_once(timeout_sec=0.05)
-    for topic, _, msg in bag.read_messages(bag_path, ["/points", "/odom", "/tf_static"]):
-        pubs[topic].publish(convert[topic](msg))
-        executor.spin_once(timeout_sec=0.01)
-        time.sleep(0.02 if topic == "/points" else 0.0)  # a little slower than the worker
-    deadline = time.time() + 60
-    while time.time() < deadline and not [a for a in got if a.status and a.status[0].values]:
-        executor.spin_once(timeout_sec=0.1)
-    windows = [a.status[0] for a in got if a.status and any(kv.key == "pne" for kv in a.status[0].values)]
-    assert windows, "no window diagnostics published"
-    st = windows[0]
-    assert st.name == "topometric: map consistency" and st.hardware_id == "velodyne"
-    values = {kv.key: kv.value for kv in st.values}
-    assert float(values["n_planes"]) > 0 and "dropped_windows" in values
-    assert node.monitor.extrinsic_source == "tf_static"
-    node.destroy_node()
-    peer.destroy_node()
+def wall_patch(width=4.0, height=2.0, distance=3.0, step=0.025, seed=0):
+    """A wall seen from the sensor: the plane x = distance, y in ±width/2, z in ±height/2 (m, sensor
+    frame), a grid with 5 mm noise; labels all WALL."""
+    from topometric_ros import classes
+
+    y, z = np.meshgrid(np.arange(-width / 2, width / 2 + 1e-9, step), np.arange(-height / 2, height / 2 + 1e-9, step))
+    rng = np.random.default_rng(seed)
+    pts = np.column_stack([distance + rng.normal(0, 0.005, y.size), y.ravel(), z.ravel()]).astype(np.float32)
+    return pts, np.full(len(pts), classes.WALL, np.uint8)
 
 
-def test_out_of_range_and_bad_choice_parameters_are_rejected(ros):
-    with pytest.raises(InvalidParameterValueException):
-        MonitorNode(parameter_overrides=[Parameter("window.size", value=0)])
-    with pytest.raises(ValueError):
-        MonitorNode(parameter_overrides=[Parameter("segmentation.mode", value="magic")])
+def yaw_pose(yaw_deg: float, t):
+    from topometric_ros import geometry
+
+    return geometry.yaw_pose(*t, np.radians(yaw_deg))
+
+
+def test_markers_have_the_true_plane_extents_in_the_map_frame(ros_env, tmp_path):
+    """A 4 m × 2 m wall 3 m ahead of a sensor 0.5 m above base_link, base_link at (10, 5, 0) turned 90°:
+    the marker is 4 × 2 (± 5 cm; ±1σ would give 2.3 × 1.2), centred at (10, 8, 0.5) in 'map', its normal
+    along the map's y axis."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from visualization_msgs.msg import MarkerArray
+
+    listener = Listener({"/diagnostics": DiagnosticArray, f"/{NODE}/planes": MarkerArray})
+    node = start_node(tmp_path, {**BASE, "window.size": 3, "publish_markers": True, "health.min_planes": 1})
+    try:
+        feeder = Feeder(listener)
+        feeder.wait_matched()
+        pts, labels = wall_patch()
+        pose = yaw_pose(90.0, (10.0, 5.0, 0.0))
+        got = None
+        for _ in range(30):
+            feeder.scan(pts, pose, labels)
+            got = listener.wait_for(f"/{NODE}/planes", lambda a: any(m.type == m.CUBE for m in a.markers), 0.3, node)
+            if got:
+                break
+        assert got, "no MarkerArray"
+        cubes = [m for m in got[1].markers if m.type == m.CUBE]
+        assert len(cubes) == 3  # one wall per scan, 3 scans per window
+        for m in cubes:
+            assert m.header.frame_id == "map"
+            assert abs(m.scale.x - 4.0) < 0.05 and abs(m.scale.y - 2.0) < 0.05, (m.scale.x, m.scale.y)
+            p = m.pose.position
+            np.testing.assert_allclose([p.x, p.y, p.z], [10.0, 8.0, 0.5], atol=0.05)
+            from topometric_ros import geometry
+
+            q = m.pose.orientation
+            r = geometry.pose_from_quat([q.x, q.y, q.z, q.w], [0, 0, 0])[:3, :3]
+            assert abs(abs(r[1, 2]) - 1) < 1e-3  # the cube's thin axis (the normal) along map y
+    finally:
+        node.stop()
+        listener.close()
+
+
+def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, tmp_path):
+    """Labels mode on clouds without a label field: every scan fails, scans keep arriving (no STALE). The
+    node says ERROR with the reason within 2 s of the first cloud; SIGINT while scans still arrive: exit 0
+    within 2 s, workers joined."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    node = start_node(tmp_path, BASE)
+    try:
+        feeder = Feeder(listener)
+        feeder.wait_matched()
+        pts, _ = wall_patch()
+        pose = yaw_pose(0.0, (0.0, 0.0, 0.0))
+        t_first = time.time()
+        found = None
+        while time.time() - t_first < 5.0 and found is None:
+            feeder.scan(pts, pose)
+            found = listener.wait_for("/diagnostics", lambda a: any(
+                s.name == CONSISTENCY and level(s) in ("WARN", "ERROR") for s in a.status), 0.1, node)
+        assert found is not None, "the node stayed silent while every scan failed"
+        st = next(s for s in found[1].status if s.name == CONSISTENCY)
+        assert found[0] - t_first < 2.0, found[0] - t_first
+        assert "no label field" in st.message and "scan_errors" in st.message, st.message
+        assert int(values(st)["scan_errors"]) >= 1 and values(st)["scans_processed"] == "0"
+        for _ in range(5):
+            feeder.scan(pts, pose)
+            time.sleep(0.1)
+        code, seconds = node.sigint()
+        assert code == 0 and seconds < 2.0 and "worker threads left: 0" in node.log(), (code, seconds)
+    finally:
+        node.stop()
+        listener.close()
+
+
+# -------------------------------------------------------------------- parameters
+@pytest.mark.parametrize("bad, words", [
+    ({"health.stale_after_s": 0}, ["health.stale_after_s", "out of range"]),  # int for a float leaf
+    ({"window.size": 0.0}, ["window.size", "out of range"]),  # float for an int leaf
+    ({"window.sise": 10}, ["unknown parameter", "window.sise"]),
+    ({"segmentation.mode": "magic"}, ["segmentation.mode", "one of"]),
+])
+def test_bad_parameters_stop_the_node_with_a_message_naming_them(ros_env, tmp_path, bad, words):
+    node = start_node(tmp_path, {**BASE, **bad})
+    try:
+        code = node.popen.wait(60)
+    finally:
+        node.stop()
+    log = node.log()
+    assert code == 2 and all(w in log for w in words) and "Traceback" not in log, (code, log[-2000:])
+
+
+def test_a_command_line_parameter_out_of_range_is_refused_too(ros_env, tmp_path):
+    node = start_node(tmp_path, BASE, extra=["-p", "health.warn_sigma:=-1"])
+    try:
+        code = node.popen.wait(60)
+    finally:
+        node.stop()
+    assert code == 2 and "health.warn_sigma" in node.log()
+
+
+# -------------------------------------------------------------------- ros2 launch and the aggregator
+@pytest.fixture(scope="module")
+def ament_prefix(tmp_path_factory):
+    """An install prefix laid out as colcon lays out this package (setup.py's data_files and the
+    console script in lib/topometric_ros), so `ros2 launch topometric_ros ...` finds it."""
+    if shutil.which("ros2") is None:
+        pytest.skip("ros2 (ros2cli) not on PATH: source a ROS 2 Jazzy with ros2launch")
+    prefix = tmp_path_factory.mktemp("install")
+    share = prefix / "share" / "topometric_ros"
+    (prefix / "share" / "ament_index" / "resource_index" / "packages").mkdir(parents=True)
+    (prefix / "share" / "ament_index" / "resource_index" / "packages" / "topometric_ros").write_text("")
+    for sub in ("launch", "config"):
+        shutil.copytree(ROOT / sub, share / sub)
+    shutil.copy(ROOT / "package.xml", share / "package.xml")
+    exe = prefix / "lib" / "topometric_ros" / "topometric_monitor"
+    exe.parent.mkdir(parents=True)
+    exe.write_text(f"#!/bin/sh\nexec {sys.executable} -m topometric_ros.node \"$@\"\n")
+    exe.chmod(0o755)
+    return prefix
+
+
+def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_groups_us(
+        ros_env, tmp_path, ament_prefix):
+    """ros2 launch with namespace:=robot1, a parameter file that sets other topics and window.size 7, and
+    points_topic:=/launch_points: the node subscribes to /launch_points (not the file's), keeps the file's
+    odom topic, window.size 7 holds under the namespace ('/**'), and the real diagnostic_aggregator
+    (config/analyzers.yaml) shows our status under its SLAM/Map consistency path on /diagnostics_agg."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rcl_interfaces.srv import GetParameters
+
+    yaml_file = write_params(tmp_path / "mine.yaml", {**BASE, "points_topic": "/yaml_points",
+                                                      "odom_topic": "/yaml_odom", "window.size": 7})
+    env = {"AMENT_PREFIX_PATH": f"{ament_prefix}:{os.environ.get('AMENT_PREFIX_PATH', '')}"}
+    listener = Listener({"/diagnostics_agg": DiagnosticArray})
+    launch = Proc(["ros2", "launch", "topometric_ros", "monitor.launch.py", f"config:={yaml_file}",
+                   "points_topic:=/launch_points", "namespace:=robot1", "aggregator:=true"], tmp_path, "launch", env)
+    try:
+        agg = listener.wait_for("/diagnostics_agg", lambda a: any(
+            s.name.startswith("/Aggregation/SLAM/Map consistency/") and "map consistency" in s.name
+            for s in a.status), 60, launch)
+        assert agg is not None, launch.log()[-3000:]
+        names = sorted(s.name for s in agg[1].status)
+        assert any(n.endswith(CONSISTENCY) or n.endswith("map consistency") for n in names), names
+        subs = listener.node.get_subscriptions_info_by_topic("/launch_points")
+        assert [(s.node_name, s.node_namespace) for s in subs] == [(NODE, "/robot1")], subs
+        assert listener.node.get_subscriptions_info_by_topic("/yaml_points") == []
+        assert [s.node_name for s in listener.node.get_subscriptions_info_by_topic("/yaml_odom")] == [NODE]
+        client = listener.node.create_client(GetParameters, f"/robot1/{NODE}/get_parameters")
+        assert client.wait_for_service(20)
+        future = client.call_async(GetParameters.Request(names=["window.size", "points_topic"]))
+        end = time.monotonic() + 10
+        while not future.done() and time.monotonic() < end:
+            time.sleep(0.05)
+        size, topic = future.result().values
+        assert size.integer_value == 7 and topic.string_value == "/launch_points"
+    finally:
+        code, seconds = launch.sigint(15)
+        launch.stop()
+        listener.close()
+    log = launch.log()
+    assert code == 0 and "[topometric_monitor-1]: process has finished cleanly" in log, log[-3000:]
+    assert "[topometric_monitor-1] Traceback" not in log, log[-3000:]

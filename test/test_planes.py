@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from topometric_ros import classes as C
 from topometric_ros.config import Config, PlaneConfig
@@ -212,3 +213,41 @@ def test_detector_quality_is_pooled_over_trajectory_seeds():
     assert both["recalled"] == sum(r["recalled"] for r in single)
     assert both["recall_per_seed"] == {0: single[0]["recall"], 1: single[1]["recall"]}
     assert both["worst_recall"] == min(r["recall"] for r in single) <= both["recall"]
+
+
+
+def _patch(rng, half_u, half_v, rot, centre, n=20000, uneven=True):
+    u, v = rng.uniform(-half_u, half_u, n), rng.uniform(-half_v, half_v, n)
+    keep = (u > -half_u / 2) | (rng.uniform(size=n) < 0.2) if uneven else np.ones(n, bool)
+    return centre + np.stack([u, v, np.zeros_like(u)], 1)[keep] @ rot.T
+
+
+def test_plane_extent_is_the_true_size_of_a_patch():
+    """A 4 m × 2 m patch of uneven density (the mean is not the centre): extent 4 × 2 (± 3 cm, the
+    sampling's edge gap), centred on the patch, in any frame; ±1σ would read 2·4/√12 = 2.31 m."""
+    rng = np.random.default_rng(7)
+    rot = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
+    centre = np.array([3.0, -1.0, 0.5])
+    plane = fit_plane(_patch(rng, 2.0, 1.0, rot, centre), C.WALL)
+    np.testing.assert_allclose(2 * np.linalg.norm(plane.extent[1:], axis=1), [4.0, 2.0], atol=0.03)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    pose[:3, 3] = [10.0, 0.0, 0.0]
+    box_centre, axes, size = plane.box(pose)
+    np.testing.assert_allclose(size, [4.0, 2.0], atol=0.03)
+    np.testing.assert_allclose(box_centre, pose[:3, :3] @ centre + pose[:3, 3], atol=0.02)
+    assert abs(axes[:, 0] @ (pose[:3, :3] @ rot[:, 0])) > 1 - 1e-4  # long side along u
+    np.testing.assert_allclose(axes.T @ axes, np.eye(3), atol=1e-9)
+    assert np.linalg.det(axes) > 0 and axes[:, 2] @ (pose[:3, :3] @ plane.normal) > 1 - 1e-9
+    bare = replace(plane, extent=None)  # a plane without extent: ±√3σ, exact for uniform density only
+    assert abs(bare.box(np.eye(4))[2][0] - 4.0) > 0.1
+
+
+def test_plane_extent_of_a_square_does_not_depend_on_the_principal_axes():
+    """A 3 m square has no principal axes (equal spreads): the rectangle still fits it, 3 × 3, not the
+    3√2 = 4.24 m of a box along a diagonal."""
+    rng = np.random.default_rng(8)
+    for yaw in (0.0, 30.0, 45.0):
+        rot = Rotation.from_euler("zx", [yaw, 90], degrees=True).as_matrix()
+        plane = fit_plane(_patch(rng, 1.5, 1.5, rot, np.array([0.0, 4.0, 0.0]), uneven=False), C.WALL)
+        np.testing.assert_allclose(plane.box(np.eye(4))[2], [3.0, 3.0], atol=0.03)

@@ -68,9 +68,9 @@ def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
         assert stamp == pytest.approx(rec["end"], abs=1e-6)  # bag time, not wall time
         assert log_time == pytest.approx(rec["end"] * 1e9, abs=1e3)
         st = arr.status[0]
-        assert st.name == "topometric: map consistency" and st.hardware_id == "velodyne"
+        assert st.name == "topometric_monitor: map consistency" and st.hardware_id == "velodyne"
         values = {kv.key: kv.value for kv in st.values}
-        assert float(values["pne"]) == pytest.approx(rec["pne"], rel=1e-5)
+        assert float(values["pne"]) == rec["pne"] and float(values["window_end"]) == rec["end"]  # full precision
         assert st.level == {"OK": 0, "WARN": 1, "ERROR": 2}[rec["level"]]
         assert st.message == rec["message"]
     rows = list(csv.DictReader(open(tmp_path / "out" / "windows.csv")))

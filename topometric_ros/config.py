@@ -103,6 +103,7 @@ class HealthConfig:
     """Drift alarms (health.py)."""
 
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
+    fail_after_s: float = 1.0  # s, scans arrive but every one fails (bad layout, no pose, ...) for this long -> ERROR with the reason
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
     warn_sigma: float = 6.0  # robust z above the baseline median -> WARN (`topometric alarms --calibrate`: every calibration group, floor plans 7, 9, 11-14)
@@ -134,7 +135,8 @@ class Config:
 
 #: Keys of config/topometric.yaml that belong to the ROS node (topics, QoS, ...), not to Config: skipped here.
 NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos", "odom_qos", "hardware_id",
-                   "publish_markers", "diagnostics_period_s", "use_sim_time")
+                   "publish_markers", "scan_rate_min_hz", "scan_rate_max_hz", "latency_warn_s", "latency_error_s",
+                   "diagnostic_updater.period", "diagnostic_updater.use_fqn", "use_sim_time")
 #: Leaves that take one of a few strings.
 CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
            "sensor.deskew": ("auto", "on", "off"), "sensor.model": ("", *SENSORS),
@@ -143,7 +145,8 @@ CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.dev
 
 
 def _unwrap_ros(doc: Mapping[str, Any]) -> Mapping[str, Any]:
-    """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters."""
+    """A ROS 2 parameter file {node: {ros__parameters: {...}}} -> its parameters; the one top key may be any
+    node name or pattern ('topometric_monitor', '/robot1/topometric_monitor', '/**')."""
     if len(doc) == 1:
         (inner,) = doc.values()
         if isinstance(inner, Mapping) and "ros__parameters" in inner:

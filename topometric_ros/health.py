@@ -38,7 +38,19 @@ RANK = {name: i for i, name in enumerate(LEVELS)}
 METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation/rotation drift", "m²")}
 #: drift rate -> (what it means, unit): compared with absolute limits only.
 RATES = {"rot_rate": ("rotation drift", "°/s"), "trans_rate": ("translation drift", "m/s")}
-STATUS_NAME = "topometric: map consistency"
+#: The node's default name; statuses are named "<node name>: <task>" (diagnostic_updater's convention).
+NODE_NAME = "topometric_monitor"
+TASK = "map consistency"
+#: Counters that mean a scan (or a window) was lost to a failure, not to load.
+FAILURE_COUNTERS = ("dropped_bad_scan", "dropped_no_pose", "dropped_duplicate", "scan_errors", "window_errors")
+
+
+def status_name(node: str = NODE_NAME, task: str = TASK) -> str:
+    """diagnostic_updater's status name: "<node name>: <task>"."""
+    return f"{node}: {task}"
+
+
+STATUS_NAME = status_name()
 MAD_TO_SIGMA = 1.4826
 CPV_TINY = 1e-12  # m², CPV below this is taken as this on the log scale
 
@@ -175,6 +187,18 @@ class Health:
                 missing.append(f"no {what} for {now - last:.1f} s")
         return ("STALE", "; ".join(missing)) if missing else None
 
+    def failing(self, now: float, failing_since: float | None, last_processed: float | None, last_error: str,
+                counters: Mapping[str, int]) -> tuple[str, str] | None:
+        """("ERROR", reason) when every scan since ``failing_since`` (receive time of the first scan that failed
+        after the last success; any clock, the same as ``now``) failed for at least fail_after_s, else None.
+        The reason names the failure counters and the last error."""
+        if failing_since is None or now - failing_since < self.config.fail_after_s:
+            return None
+        since = ("no scan processed yet" if last_processed is None
+                 else f"no scan processed for {now - last_processed:.1f} s")
+        lost = ", ".join(f"{k} {counters[k]}" for k in FAILURE_COUNTERS if counters.get(k))
+        return "ERROR", f"{since}, every scan fails ({lost or 'no counter'}): {last_error or 'unknown error'}"
+
 
 def _worse(a: str, b: str) -> str:
     return a if RANK[a] >= RANK[b] else b
@@ -191,8 +215,10 @@ def _limits(metric: str, base, c: HealthConfig, lim_warn: float, lim_err: float)
 
 # -------------------------------------------------------------------- diagnostics messages
 def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return "nan" if not np.isfinite(value) else f"{value:.6g}"
+    """A KeyValue string at full precision: floats as repr (shortest text that reads back the same
+    double, e.g. a stamp 1700000012.2), 'nan' / 'inf' / '-inf' when not finite."""
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
     return str(value)
 
 

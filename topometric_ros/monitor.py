@@ -59,6 +59,7 @@ class _Scan:
     time: np.ndarray | None = None
     columns: int = 0
     sweep: tuple | None = None  # (t_min, t_max, period_s, stamp_at)
+    received: float | None = None  # caller's clock (node or bag time), for the failure check
 
 
 def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
@@ -67,6 +68,17 @@ def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
     if v.shape != (7,) or not np.all(np.isfinite(v)):
         raise ValueError(f"extrinsic must be 7 finite numbers [x y z qx qy qz qw], got {list(values)!r}")
     return geometry.pose_from_quat(v[3:], v[:3])
+
+
+def _clock(stamp: Any, received: float | None) -> float | None:
+    """The caller's receive time, else the stamp (s) when it is a finite number, else None."""
+    if received is not None:
+        return float(received)
+    try:
+        value = float(stamp)
+    except (TypeError, ValueError):
+        return None
+    return value if np.isfinite(value) else None
 
 
 def _valid_pose(pose: np.ndarray) -> bool:
@@ -154,6 +166,11 @@ class Monitor:
         self.last_error = ""
         self.last_scan_received: float | None = None  # clock/bag time of the last scan (for STALE)
         self.last_pose_received: float | None = None
+        # failure check (caller's clock): receive time of the newest scan processed end to end, and of the first
+        # scan that failed after it (None while the newest outcome is a success)
+        self.last_processed: float | None = None
+        self.failing_since: float | None = None
+        self._received_of: dict[int, float | None] = {}  # scan index -> receive time, while in the stages
         self._counts = dict.fromkeys(COUNTERS, 0)
         self._lock = threading.Lock()
         self._pending: deque[_Scan] = deque()
@@ -207,9 +224,20 @@ class Monitor:
     def pending_length(self) -> int:
         return len(self._pending)
 
-    def _error(self, counter: str, message: str) -> None:
+    def _error(self, counter: str, message: str, received: float | None = None) -> None:
+        """Count a lost scan (or window) and keep its reason; with its receive time it is a failure."""
         self.count(counter)
         self.last_error = message
+        if received is not None:
+            with self._lock:
+                if self.failing_since is None:
+                    self.failing_since = received
+
+    def _succeeded(self, received: float | None) -> None:
+        if received is not None:
+            with self._lock:
+                self.last_processed = received if self.last_processed is None else max(self.last_processed, received)
+                self.failing_since = None
 
     # ---------------------------------------------------------------- inputs: messages
     def add_cloud(self, msg: Any, received: float | None = None) -> bool:
@@ -220,7 +248,9 @@ class Monitor:
             scan = read_scan(msg, model.beams if model is not None else 0)
         except (CloudError, AttributeError, TypeError, ValueError) as e:
             self.count("scans_in")
-            self._error("dropped_bad_scan", f"malformed cloud: {e}")
+            if received is not None:  # a scan did arrive: input has not stopped, it fails (see failing)
+                self.last_scan_received = float(received)
+            self._error("dropped_bad_scan", f"malformed cloud: {e}", received)
             return False
         if scan.frame_id and scan.frame_id != self.sensor_frame:
             self.sensor_frame = scan.frame_id
@@ -296,7 +326,7 @@ class Monitor:
             self.count("duplicate_poses")
             return False
         if status == "backwards":
-            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}")
+            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}", self.last_pose_received)
         self._resolve_pending()
         return True
 
@@ -315,25 +345,27 @@ class Monitor:
     def _accept(self, stamp, points, extra: dict, received, finite: bool, columns: int = 0,
                 sweep: tuple | None = None) -> bool:
         self.count("scans_in")
-        scan = self._checked_scan(stamp, points, extra, finite)
+        clock = _clock(stamp, received)
+        if clock is not None:  # a scan arrived, even if it fails below (failing, not STALE)
+            self.last_scan_received = clock
+        scan = self._checked_scan(stamp, points, extra, finite, clock)
         if scan is None:
             return False
         scan.columns, scan.sweep = columns, sweep
-        self.last_scan_received = float(stamp if received is None else received)
         if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
             if scan.stamp == self._last_scan_stamp:
-                self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}")
+                self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
                 return False
-            self._time_reset(f"scan stamp went backwards to {stamp:.3f}")
+            self._time_reset(f"scan stamp went backwards to {stamp:.3f}", clock)
         self._last_scan_stamp = scan.stamp
         self._pending.append(scan)
         while len(self._pending) > MAX_PENDING:
-            self._pending.popleft()
-            self._error("dropped_no_pose", "too many scans waiting for odometry")
+            lost = self._pending.popleft()
+            self._error("dropped_no_pose", "too many scans waiting for odometry", lost.received)
         self._resolve_pending()
         return True
 
-    def _checked_scan(self, stamp, points, extra: dict, finite: bool) -> _Scan | None:
+    def _checked_scan(self, stamp, points, extra: dict, finite: bool, received: float | None) -> _Scan | None:
         """The scan with non-finite points removed (skipped when ``finite``: already filtered), or None."""
         try:
             stamp = float(stamp)
@@ -346,7 +378,7 @@ class Monitor:
                 if a is not None and len(a) != len(pts):
                     raise ValueError(f"{name} has {len(a)} entries for {len(pts)} points")
         except (ValueError, TypeError) as e:
-            self._error("dropped_bad_scan", f"malformed scan: {e}")
+            self._error("dropped_bad_scan", f"malformed scan: {e}", received)
             return None
         keep = None if finite else np.isfinite(pts).all(axis=1)
         if keep is not None and not keep.all():
@@ -354,15 +386,21 @@ class Monitor:
             pts = pts[keep]
             extra = {k: None if a is None else np.asarray(a)[keep] for k, a in extra.items()}
         if len(pts) == 0:
-            self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}")
+            self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}", received)
             return None
         return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
-                     time.perf_counter(), extra["time"])
+                     time.perf_counter(), extra["time"], received=received)
 
-    def _time_reset(self, why: str) -> None:
-        """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself."""
+    def _time_reset(self, why: str, now: float | None) -> None:
+        """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself.
+        Failure-check times later than ``now`` (the receive clock went back too) are forgotten."""
         self.count("time_resets")
         self.last_error = why
+        with self._lock:
+            if now is not None and self.last_processed is not None and self.last_processed > now:
+                self.last_processed = None
+            if now is not None and self.failing_since is not None and self.failing_since > now:
+                self.failing_since = None
         if self._pending:
             self.count("dropped_no_pose", len(self._pending))
             self._pending.clear()
@@ -381,11 +419,12 @@ class Monitor:
             self._pending.popleft()
             pose = self.poses.lookup(scan.stamp, w.max_pose_gap_s)
             if pose is None:
-                self._error("dropped_no_pose", f"no odometry within {w.max_pose_gap_s} s of scan {scan.stamp:.3f}")
+                self._error("dropped_no_pose", f"no odometry within {w.max_pose_gap_s} s of scan {scan.stamp:.3f}",
+                            scan.received)
                 continue
             frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity,
                           scan.time, scan.columns, self._motion(scan))
-            self._submit(frame, scan.arrived)
+            self._submit(frame, scan.arrived, scan.received)
 
     def _motion(self, scan: _Scan):
         """The sensor's motion over the scan's sweep from the odometry (deskew.sweep_motion; past the newest
@@ -407,9 +446,11 @@ class Monitor:
         return motion
 
     # ---------------------------------------------------------------- work
-    def _submit(self, frame: Frame, arrived: float) -> None:
+    def _submit(self, frame: Frame, arrived: float, received: float | None = None) -> None:
         index = self._index
         self._index += 1
+        with self._lock:
+            self._received_of[index] = received
         if not self.live:
             item = (frame, index, arrived, 0.0)
             for stage in range(len(self.stages)):
@@ -422,7 +463,7 @@ class Monitor:
             if self.block:
                 self._cond.wait_for(lambda: len(self._queue) < size)
             elif len(self._queue) >= size:
-                self._queue.popleft()
+                self._received_of.pop(self._queue.popleft()[1], None)  # lost to load, not to a failure
                 self._counts["dropped_queue_full"] += 1
             self._queue.append((frame, index, arrived, 0.0))
             self._cond.notify_all()
@@ -475,32 +516,38 @@ class Monitor:
                 out = self.stages[stage](data, self.config)
         except Exception as e:  # noqa: BLE001 - a bad scan must not stop the monitor
             stamp = getattr(data, "stamp", getattr(getattr(data, "frame", None), "stamp", float("nan")))
-            self._error("scan_errors", f"scan {stamp:.3f}: {type(e).__name__}: {e}")
+            self._error("scan_errors", f"scan {stamp:.3f}: {type(e).__name__}: {e}", self._pop_received(index))
             return None
         ms += 1000 * (time.perf_counter() - t0)
         if stage < len(self.stages) - 1:
             return out, index, arrived, ms
-        self._finish(out, ms, arrived)
+        self._finish(out, ms, arrived, self._pop_received(index))
         return None
 
-    def _finish(self, scan: Any, ms: float, arrived: float) -> None:
-        """A processed scan: count it, push it into the window, score the window when it completes."""
+    def _pop_received(self, index: int) -> float | None:
+        with self._lock:
+            return self._received_of.pop(index, None)
+
+    def _finish(self, scan: Any, ms: float, arrived: float, received: float | None = None) -> None:
+        """A processed scan: count it, push it into the window, score the window when it completes; a success
+        for the failure check unless its window failed."""
         scan.timings["monitor"] = ms  # ms, the per-scan stages' compute time (queue waits excluded)
         self.count("scans_processed")
         discarded = self.window.discarded
         scans = self.window.push(scan, scan.stamp)
         if self.window.discarded > discarded:
             self.count("windows_discarded", self.window.discarded - discarded)
-        if scans is not None:
-            self._score(scans, arrived)
+        if scans is None or self._score(scans, arrived, received):
+            self._succeeded(received)
 
-    def _score(self, scans: list, arrived: float) -> None:
+    def _score(self, scans: list, arrived: float, received: float | None = None) -> bool:
+        """Score and assess a completed window; False when scoring failed (counted)."""
         t0 = time.perf_counter()
         try:
             result = self.window_fn(scans, self.config)
         except Exception as e:  # noqa: BLE001
-            self._error("window_errors", f"window at {scans[-1].stamp:.3f}: {type(e).__name__}: {e}")
-            return
+            self._error("window_errors", f"window at {scans[-1].stamp:.3f}: {type(e).__name__}: {e}", received)
+            return False
         now = time.perf_counter()
         result.timings["window"] = 1000 * (now - t0)  # ms, scoring this window
         for key in sorted({k for s in scans for k in s.timings}):  # ms, per-scan steps summed over the window
@@ -514,6 +561,7 @@ class Monitor:
                 self.on_window(result, scans)
             except Exception as e:  # noqa: BLE001 - a failing consumer must not stop the worker
                 self.last_error = f"on_window: {type(e).__name__}: {e}"
+        return True
 
     # ---------------------------------------------------------------- control
     def flush(self, timeout: float | None = None) -> bool:
@@ -529,6 +577,21 @@ class Monitor:
         """(STALE, reason) when no scan or no odometry arrived for health.stale_after_s before ``now``
         (clock or bag time, the same clock as ``received``), else None."""
         return self.health.stale(now, self.last_scan_received, self.last_pose_received)
+
+    def failing(self, now: float) -> tuple[str, str] | None:
+        """(ERROR, reason) when scans arrive but every one since the last success failed for
+        health.fail_after_s before ``now`` (the caller's clock, as ``received``), else None."""
+        with self._lock:
+            since, last = self.failing_since, self.last_processed
+        return self.health.failing(now, since, last, self.last_error, self.counters)
+
+    def check(self, now: float) -> tuple[str, str] | None:
+        """What the periodic check reports at ``now``: STALE (input stopped; with the failure reason when scans
+        fail too), else ERROR (every scan fails), else None (the windows speak)."""
+        stale, failing = self.stale(now), self.failing(now)
+        if stale and failing:  # e.g. odometry stopped and the scans cannot find poses: say both
+            return stale[0], f"{stale[1]}; {failing[1]}"
+        return stale or failing
 
     def close(self, drain: bool = True) -> None:
         """Stop the worker (after the queued work when ``drain``)."""

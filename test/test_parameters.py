@@ -1,0 +1,88 @@
+"""parameters.py without ROS: range and choice checks whatever the value's type, unknown keys, the Config
+the node builds, and docs/ros.md's parameter table (generated from the code) being current."""
+from pathlib import Path
+
+import pytest
+
+from topometric_ros import config, parameters
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name, value", [
+    ("health.stale_after_s", 0),  # an int for a float leaf: rclpy's floating_point_range would not apply
+    ("health.stale_after_s", 0.0),
+    ("window.size", 0),
+    ("window.size", 500.0),  # a float for an int leaf
+    ("segmentation.threads", -1),
+    ("diagnostic_updater.period", 0),
+    ("scan_rate_max_hz", 1e9),
+])
+def test_out_of_range_values_are_refused_whatever_their_type(name, value):
+    with pytest.raises(ValueError, match=name.replace(".", r"\.") + ".*out of range"):
+        parameters.check(name, value)
+
+
+def test_in_range_values_and_choices():
+    parameters.check("health.stale_after_s", 5)
+    parameters.check("window.size", 10)
+    parameters.check("points_qos", "reliable")
+    with pytest.raises(ValueError, match="'segmentation.mode' = 'magic' must be one of: network, labels, none"):
+        parameters.check("segmentation.mode", "magic")
+    with pytest.raises(ValueError, match="odom_qos"):
+        parameters.check("odom_qos", "best_effort")
+
+
+def test_unknown_keys_are_named():
+    with pytest.raises(ValueError, match=r"unknown parameter 'window\.sise'"):
+        parameters.check_known({"window.sise", "window.size"}, {"window.size"})
+    parameters.check_known({"window.size"}, {"window.size", "use_sim_time"})
+
+
+def test_config_from_node_values_converts_and_checks():
+    cfg = parameters.config_from({"health.stale_after_s": 7, "window.size": 10,
+                                  "window.extrinsic": (0, 0, 1, 0, 0, 0, 1)})
+    assert cfg.health.stale_after_s == 7.0 and isinstance(cfg.health.stale_after_s, float)
+    assert cfg.window.size == 10 and cfg.window.extrinsic == [0, 0, 1, 0, 0, 0, 1]
+    with pytest.raises(ValueError, match="stale_after_s"):
+        parameters.config_from({"health.stale_after_s": 0})
+    with pytest.raises(ValueError, match="must be int"):
+        parameters.config_from({"window.size": 5.5})
+
+
+def test_every_range_names_a_parameter_and_node_keys_agree_with_config():
+    every = parameters.defaults()
+    assert set(parameters.RANGES) <= set(every)
+    assert set(config.NODE_PARAMETERS) == set(parameters.NODE_SPEC) | set(parameters.UPDATER_SPEC) | {"use_sim_time"}
+    assert set(parameters.config_descriptions()) == set(config.flatten(config.Config()))  # every leaf documented
+
+
+def test_the_shipped_parameter_file_is_valid_for_the_node_and_replay():
+    """config/topometric.yaml: every key is a parameter, every value passes the node's checks, and replay's
+    load_config reads it (the '/**' top key matches the node under any namespace)."""
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "config" / "topometric.yaml").read_text())
+    assert list(doc) == ["/**"]
+    values = doc["/**"]["ros__parameters"]
+    parameters.check_known(set(values), set(parameters.defaults()))
+    for name, value in values.items():
+        parameters.check(name, value)
+    assert config.load_config(ROOT / "config" / "topometric.yaml").window.size == values["window.size"]
+
+
+def test_docs_parameter_table_is_current():
+    """docs/ros.md holds `python -m topometric_ros.parameters` between its markers; regenerate it when
+    this fails."""
+    text = (ROOT / "docs" / "ros.md").read_text()
+    begin, end = "<!-- parameters:begin -->\n", "<!-- parameters:end -->"
+    assert begin in text and end in text
+    assert text.split(begin, 1)[1].split(end, 1)[0] == parameters.markdown_table()
+
+
+def test_a_bare_on_or_off_is_a_choice_not_a_type_error():
+    """YAML (and rcl's parameter parser) reads a bare on / off as a boolean: accepted for on|off choices."""
+    parameters.check("sensor.deskew", True)
+    assert parameters.config_from({"sensor.deskew": False}).sensor.deskew == "off"
+    with pytest.raises(ValueError, match="segmentation.mode"):
+        parameters.check("segmentation.mode", True)
