@@ -129,8 +129,9 @@ def test_rpe_estimate_matches_the_rpe_of_poses_drifting_at_those_rates():
     assert got == pytest.approx(rpe(gt, est), rel=0.1)  # the small-error form leaves out the lever arm
 
 
-def test_rate_limits_raise_at_once_and_name_the_drift():
-    h = Health(HealthConfig(rot_rate_warn=0.8, rot_rate_error=1.5, trans_rate_warn=0.05, trans_rate_error=0.1))
+def test_absolute_rate_limits_raise_at_once_and_name_the_drift():
+    h = Health(HealthConfig(rate_limits="absolute", rot_rate_warn=0.8, rot_rate_error=1.5, trans_rate_warn=0.05,
+                            trans_rate_error=0.1))
 
     def assess(rot, trans):
         r = WindowResult([0.0, 0.8], pne=-9.0, cpv=1e-5, n_planes=40, n_groups=10, rot_rate=rot, trans_rate=trans)
@@ -143,7 +144,8 @@ def test_rate_limits_raise_at_once_and_name_the_drift():
     r = assess(0.1, 0.2)
     assert r.level == "ERROR" and "translation drift: 0.2 m/s (limit 0.1)" in r.message
     assert assess(float("nan"), float("nan")).level == "OK"  # no group: no rate (CPV reports that)
-    off = Health(HealthConfig(rot_rate_warn=0, rot_rate_error=0, trans_rate_warn=0, trans_rate_error=0))
+    off = Health(HealthConfig(rate_limits="absolute", rot_rate_warn=0, rot_rate_error=0, trans_rate_warn=0,
+                              trans_rate_error=0))
     r = WindowResult([0.0, 0.8], pne=-9.0, cpv=1e-5, n_planes=40, n_groups=10, rot_rate=50.0, trans_rate=5.0)
     assert off.assess(r).level == "OK"
 

@@ -53,7 +53,7 @@ def test_translation_drift_raises_cpv_alarm():
     med, sigma = h.baseline("cpv")  # on the ln scale
     r = result(cpv=float(np.exp(med + 4.5 * sigma)))
     a = h.assess(r)
-    assert r.level == "WARN" and "translation/rotation drift: CPV 4.5σ" in r.message
+    assert r.level == "WARN" and r.message.startswith("translation drift: CPV 4.5σ")  # the alarm leads
     assert a.warn_at["cpv"] == pytest.approx(from_scale("cpv", med + 4 * sigma))
 
 
@@ -210,3 +210,50 @@ def test_with_persistence_every_level_comes_one_window_later_for_a_steady_rise()
     for k in np.linspace(0, 10, 21):
         a, b = single.assess(result(pne=med + k * sigma)).level, double.assess(result(pne=med + k * sigma)).level
         assert b == (a if k > 4.0 else "OK")  # the first window above 4σ (k = 4.0) is the one held back
+
+
+def _moving(rot=0.0, trans=0.0, speed=0.0, turn=0.0):
+    r = WindowResult([0.0, 0.8], pne=1.0, cpv=0.01, n_planes=40, n_groups=10, rot_rate=rot, trans_rate=trans,
+                     speed=speed, turn_rate=turn)
+    return r
+
+
+def test_relative_limits_grow_with_speed_and_turning_like_kitti():
+    """Limits = floor + share of the motion: rotation 0.5 °/s + 0.05 °/m × speed + 0.01 × turn rate, translation
+    0.04 m/s + 1 % of speed; ERROR at twice that. With no learning the configured floors hold."""
+    c = HealthConfig(noise_windows=0, warn_persist=1)
+    h = Health(c)
+    limits = h.rates.limits(_moving(speed=10.0, turn=50.0))
+    assert limits["rot_rate"] == pytest.approx((0.5 + 0.5 + 0.5, 3.0))
+    assert limits["trans_rate"] == pytest.approx((0.04 + 0.1, 0.28))
+    # the same 0.12 m/s drift: ERROR standing still, WARN at 4 m/s, OK at 10 m/s (monotonic in speed)
+    levels = [Health(c).assess(_moving(trans=0.12, speed=v)).level for v in (0.0, 4.0, 10.0)]
+    assert levels == ["ERROR", "WARN", "OK"]
+    r = _moving(rot=2.0, speed=1.0)
+    Health(c).assess(r)
+    assert r.level == "ERROR" and r.message.startswith("rotation drift: 2 °/s (limit 1.1 at 1 m/s")
+
+
+def test_the_noise_floor_is_learned_per_run_within_bounds():
+    """A jittery SLAM: 0.35 °/s and 0.03 m/s standing still in its first windows. While learning, the floors
+    are noise_max_factor × the configured ones; then 2 × the 0.75-quantile, clipped to [floor, 3 × floor]."""
+    c = HealthConfig(noise_windows=15, warn_persist=1)
+    h = Health(c)
+    assert h.rates.limits(_moving())["rot_rate"][0] == pytest.approx(1.5)  # learning: 3 × 0.5
+    rng = np.random.default_rng(0)
+    for k in range(15):
+        r = _moving(rot=0.35 + 0.01 * rng.standard_normal(), trans=0.03 + 0.001 * rng.standard_normal())
+        h.assess(r)
+        assert r.level == "OK" and (k == 14) != ("learning the rates' noise floor" in r.message)
+    lim = h.rates.limits(_moving())
+    assert lim["rot_rate"][0] == pytest.approx(0.7, abs=0.03)  # 2 × ~0.355: above the 0.5 configured
+    assert lim["trans_rate"][0] == pytest.approx(0.06, abs=0.005)
+    assert h.assess(_moving(rot=0.6)).level == "OK" and h.assess(_moving(rot=0.8)).level == "WARN"
+    quiet = Health(c)
+    for _ in range(15):
+        quiet.assess(_moving(rot=0.01, trans=0.001))
+    assert quiet.rates.limits(_moving())["rot_rate"][0] == pytest.approx(0.5)  # never below the configured floor
+    noisy = Health(c)
+    for _ in range(15):
+        noisy.assess(_moving(rot=5.0, trans=1.0))
+    assert noisy.rates.limits(_moving())["trans_rate"][0] == pytest.approx(0.12)  # never above 3 × it

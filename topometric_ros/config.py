@@ -116,10 +116,21 @@ class HealthConfig:
     pne_error: float = 0.0  # nats, absolute PNE limit -> ERROR (0 = off)
     cpv_warn: float = 0.0  # m², absolute CPV limit -> WARN (0 = off)
     cpv_error: float = 0.0  # m², absolute CPV limit -> ERROR (0 = off)
-    rot_rate_warn: float = 0.6  # deg/s, drift rate of plane normals and offsets -> WARN at once (0 = off; calibration split: drift-free max 0.18, weakest episode 1.97)
-    rot_rate_error: float = 1.2  # deg/s -> ERROR (0 = off)
-    trans_rate_warn: float = 0.05  # m/s, drift rate of the window origin -> WARN at once (0 = off; calibration split: drift-free max 0.023, weakest episode 0.18)
-    trans_rate_error: float = 0.1  # m/s -> ERROR (0 = off)
+    rate_limits: str = "relative"  # relative: floor + a share of the motion (KITTI-like), floor learned per run | absolute: the *_rate_warn/_error below
+    rot_floor: float = 0.5  # deg/s, rotation drift allowed standing still (relative limits; raised per run by the learned noise floor)
+    rot_per_m: float = 0.05  # deg per m travelled, added to the rotation limit (relative limits)
+    rot_per_deg: float = 0.01  # deg per deg turned, added to the rotation limit (relative limits)
+    trans_floor: float = 0.04  # m/s, translation drift allowed standing still (relative limits; raised per run by the learned noise floor)
+    trans_per_m: float = 0.01  # m per m travelled (a fraction of the distance), added to the translation limit (relative limits)
+    error_factor: float = 2.0  # ERROR at this multiple of a rate's WARN limit (relative limits)
+    noise_windows: int = 15  # windows that learn the run's noise floor of the rates; meanwhile the floors are noise_max_factor x theirs
+    noise_quantile: float = 0.75  # quantile of the learning windows' rates (above the motion share) the floor is learned from
+    noise_margin: float = 2.0  # learned floor = this x that quantile
+    noise_max_factor: float = 3.0  # a learned floor is at most this x the configured one (keeps drift detectable)
+    rot_rate_warn: float = 0.6  # deg/s, absolute rotation drift limit -> WARN at once (rate_limits absolute; 0 = off)
+    rot_rate_error: float = 1.2  # deg/s -> ERROR (rate_limits absolute; 0 = off)
+    trans_rate_warn: float = 0.05  # m/s, absolute translation drift limit -> WARN at once (rate_limits absolute; 0 = off)
+    trans_rate_error: float = 0.1  # m/s -> ERROR (rate_limits absolute; 0 = off)
     min_planes: int = 3  # fewer planes than this in a window -> WARN (metrics unreliable)
 
 
@@ -140,6 +151,7 @@ NODE_PARAMETERS = ("points_topic", "odom_topic", "tf_static_topic", "points_qos"
 #: Leaves that take one of a few strings.
 CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.device": ("cpu", "cuda"),
            "sensor.deskew": ("auto", "on", "off"), "sensor.model": ("", *SENSORS),
+           "health.rate_limits": ("relative", "absolute"),
            "segmentation.backend": ("onnxruntime", "eager"),
            "planes.detector": ("ring", "open3d")}
 

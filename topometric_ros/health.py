@@ -33,10 +33,10 @@ from .config import HealthConfig
 
 LEVELS = ("OK", "WARN", "ERROR", "STALE")
 RANK = {name: i for i, name in enumerate(LEVELS)}
-#: metric -> (what its rise means, unit). PNE rises with rotation error only; CPV with translation error and
-#: with rotation error (a rotated scan shifts its distant planes), so its alarm names both.
-METRICS = {"pne": ("rotation drift", "nats"), "cpv": ("translation/rotation drift", "m²")}
-#: drift rate -> (what it means, unit): compared with absolute limits only.
+#: metric -> unit. PNE rises with rotation error only; CPV with translation error and with rotation error (a
+#: rotated scan shifts its distant planes): its alarm is named by the drift rate nearer its limit (_meaning).
+METRICS = {"pne": "nats", "cpv": "m²"}
+#: drift rate -> (what it means, unit).
 RATES = {"rot_rate": ("rotation drift", "°/s"), "trans_rate": ("translation drift", "m/s")}
 #: The node's default name; statuses are named "<node name>: <task>" (diagnostic_updater's convention).
 NODE_NAME = "topometric_monitor"
@@ -84,6 +84,7 @@ class Health:
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
         self._high: deque[bool] = deque(maxlen=max(1, self.config.persist_windows, self.config.warn_persist))
+        self.rates = RateLimits(self.config)
         self.last: Assessment | None = None
 
     def reset_clock(self) -> None:
@@ -101,19 +102,22 @@ class Health:
         return med, max(MAD_TO_SIGMA * mad, getattr(self.config, f"{metric}_min_sigma"), 1e-12)
 
     def assess(self, result: Any) -> Assessment:
-        """Level and reason for a WindowResult (its ``level``/``message`` are set too)."""
+        """Level and reason for a WindowResult (its ``level``/``message`` are set too). The message leads with
+        the alarms ("rotation drift: 3.5 °/s (limit 1.2 ...)"), then the rest."""
         c = self.config
-        level, reasons, z, warn_at, error_at = "OK", [], {}, {}, {}
+        level, alarms, notes, z, warn_at, error_at = "OK", [], [], {}, {}, {}
         learning = False
         sigma_z = self._sigma_z(result)
         self._high.append(any(v >= c.warn_sigma for v in sigma_z.values()))
         persistent = sum(self._high) >= c.warn_persist
-        for metric, (meaning, unit) in METRICS.items():
+        limits = self.rates.limits(result)
+        for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
                 level = _worse(level, "WARN")
-                reasons.append(f"{metric.upper()} undefined (no co-planar planes)")
+                alarms.append(f"{metric.upper()} undefined (no co-planar planes)")
                 continue
+            meaning = _meaning(metric, result, limits)
             base = self.baseline(metric)
             lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
             warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
@@ -121,48 +125,48 @@ class Health:
             learning |= base is None
             if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
-                reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
+                alarms.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
             elif base and z[metric] >= c.error_sigma and persistent:
                 level = _worse(level, "ERROR")
-                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
+                alarms.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
             elif lim_warn != 0 and value >= lim_warn:
                 level = _worse(level, "WARN")
-                reasons.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
+                alarms.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
             elif base and z[metric] >= c.warn_sigma and persistent:
                 level = _worse(level, "WARN")
-                reasons.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
-                               (f" ({sum(self._high)} of the last {len(self._high)} windows)"
-                                if c.warn_persist > 1 else ""))
+                alarms.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
+                              (f" ({sum(self._high)} of the last {len(self._high)} windows)" if c.warn_persist > 1 else ""))
             elif base and z[metric] >= c.warn_sigma:
-                reasons.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
-                               f"{sum(self._high)} of {c.warn_persist} windows needed")
+                notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
+                             f"{sum(self._high)} of {c.warn_persist} windows needed")
         for rate, (meaning, unit) in RATES.items():
             value = float(getattr(result, rate, float("nan")))
-            lim_warn, lim_err = getattr(c, f"{rate}_warn"), getattr(c, f"{rate}_error")
+            warn_at[rate], error_at[rate] = limits[rate]
             if not np.isfinite(value):
                 continue  # no co-plane group: already reported as CPV undefined
-            if lim_err != 0 and value >= lim_err:
-                level = _worse(level, "ERROR")
-                reasons.append(f"{meaning}: {value:.3g} {unit} (limit {lim_err:g})")
-            elif lim_warn != 0 and value >= lim_warn:
-                level = _worse(level, "WARN")
-                reasons.append(f"{meaning}: {value:.3g} {unit} (limit {lim_warn:g})")
+            for name, limit in (("ERROR", limits[rate][1]), ("WARN", limits[rate][0])):
+                if limit > 0 and value >= limit:
+                    level = _worse(level, name)
+                    alarms.append(f"{meaning}: {value:.3g} {unit} (limit {limit:.3g}{self.rates.why(result)})")
+                    break
+        self.rates.learn(result)
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
-            reasons.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
+            alarms.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
         calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
         if learning or (level == "OK" and calm):  # only clearly normal windows teach the baseline (no creep)
             for metric in METRICS:
                 value = float(getattr(result, metric))
                 if np.isfinite(value):
                     self._history[metric].append(to_scale(metric, value))
-        if not reasons:  # (an OK window may still carry "watch:" reasons: a rise not yet persistent)
-            if learning:
-                n = min(len(h) for h in self._history.values())
-                reasons.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
-            else:
-                reasons.append("consistent (" + ", ".join(f"{m.upper()} {z[m]:+.1f}σ" for m in z) + ")")
-        result.level, result.message = level, "; ".join(reasons)
+        if learning:
+            n = min(len(h) for h in self._history.values())
+            notes.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
+        elif not alarms and not notes:
+            notes.append("consistent (" + ", ".join(f"{m.upper()} {z[m]:+.1f}σ" for m in z) + ")")
+        if self.rates.learning and all(np.isfinite(float(getattr(result, r, np.nan))) for r in RATES):
+            notes.append(f"learning the rates' noise floor ({self.rates.seen}/{c.noise_windows} windows)")
+        result.level, result.message = level, "; ".join(alarms + notes)
         self.last = Assessment(level, result.message, z, warn_at, error_at)
         return self.last
 
@@ -200,6 +204,78 @@ class Health:
         return "ERROR", f"{since}, every scan fails ({lost or 'no counter'}): {last_error or 'unknown error'}"
 
 
+def _meaning(metric: str, result: Any, limits: Mapping[str, tuple[float, float]]) -> str:
+    """What a metric's rise means: PNE rotation drift; CPV the drift whose rate is nearer its WARN limit
+    (translation when the rates cannot tell)."""
+    if metric == "pne":
+        return RATES["rot_rate"][0]
+    share = {r: float(getattr(result, r, np.nan)) / limits[r][0] if limits[r][0] > 0 else np.nan for r in RATES}
+    rot, trans = share["rot_rate"], share["trans_rate"]
+    return RATES["rot_rate"][0] if np.isfinite(rot) and not (np.isfinite(trans) and trans >= rot) else RATES["trans_rate"][0]
+
+
+class RateLimits:
+    """The WARN and ERROR limits of the two drift rates for a window.
+
+    ``relative`` (default): drift is judged against the motion, as the KITTI odometry benchmark does — the
+    rotation limit is rot_floor + rot_per_m × speed + rot_per_deg × turn rate (deg/s), the translation limit
+    trans_floor + trans_per_m × speed (m/s), speed and turn rate from the window's SLAM poses; ERROR at
+    error_factor × WARN. The floors (what standing still is allowed) are learned per run from its first
+    ``noise_windows`` windows: noise_margin × the noise_quantile of the rates above their motion share,
+    between the configured floor and noise_max_factor × it; while learning, the floors are at that maximum.
+    So a SLAM whose everyday error is larger (jitter, a noisy sensor) is not alarmed on, with no per-site
+    tuning, while real drift, which grows, still is. ``absolute``: the fixed rot_rate_* / trans_rate_* limits.
+    """
+
+    def __init__(self, config: HealthConfig):
+        self.c = config
+        self._excess: dict[str, list[float]] = {r: [] for r in RATES}
+        start = config.noise_max_factor if config.noise_windows > 0 else 1.0
+        self.floor = {"rot_rate": config.rot_floor * start, "trans_rate": config.trans_floor * start}
+        self.seen = 0
+
+    @property
+    def learning(self) -> bool:
+        return self.c.rate_limits == "relative" and self.seen < self.c.noise_windows
+
+    def _motion_share(self, result: Any) -> dict[str, float]:
+        speed, turn = float(getattr(result, "speed", np.nan)), float(getattr(result, "turn_rate", np.nan))
+        speed, turn = (speed if np.isfinite(speed) else 0.0), (turn if np.isfinite(turn) else 0.0)
+        return {"rot_rate": self.c.rot_per_m * speed + self.c.rot_per_deg * turn, "trans_rate": self.c.trans_per_m * speed}
+
+    def limits(self, result: Any) -> dict[str, tuple[float, float]]:
+        """rate -> (WARN limit, ERROR limit) in the rate's units (0 = off)."""
+        c = self.c
+        if c.rate_limits == "absolute":
+            return {"rot_rate": (c.rot_rate_warn, c.rot_rate_error), "trans_rate": (c.trans_rate_warn, c.trans_rate_error)}
+        share = self._motion_share(result)
+        return {r: (self.floor[r] + share[r], c.error_factor * (self.floor[r] + share[r])) for r in RATES}
+
+    def why(self, result: Any) -> str:
+        """How a relative limit came about, for the reason text."""
+        if self.c.rate_limits == "absolute":
+            return ""
+        speed, turn = float(getattr(result, "speed", np.nan)), float(getattr(result, "turn_rate", np.nan))
+        return f" at {speed:.2g} m/s, {turn:.2g} °/s turning" if np.isfinite(speed) else ""
+
+    def learn(self, result: Any) -> None:
+        """Take the window into the noise floor while the first noise_windows windows go by."""
+        c = self.c
+        if not self.learning:
+            return
+        share = self._motion_share(result)
+        rates = {r: float(getattr(result, r, np.nan)) for r in RATES}
+        if not all(np.isfinite(v) for v in rates.values()):
+            return
+        self.seen += 1
+        for r in RATES:
+            self._excess[r].append(max(rates[r] - share[r], 0.0))
+        if self.seen == c.noise_windows:
+            for r, base in (("rot_rate", c.rot_floor), ("trans_rate", c.trans_floor)):
+                learned = c.noise_margin * float(np.quantile(self._excess[r], c.noise_quantile))
+                self.floor[r] = float(np.clip(learned, base, base * c.noise_max_factor))
+
+
 def _worse(a: str, b: str) -> str:
     return a if RANK[a] >= RANK[b] else b
 
@@ -226,7 +302,7 @@ def window_values(result: Any, counters: Mapping[str, int] | None = None,
                   extra: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The KeyValue strings of one window's status (DESIGN.md's list, then the monitor's counters)."""
     values = {"pne": result.pne, "cpv": result.cpv}
-    for name in ("rpe_estimate", *RATES):
+    for name in ("rpe_estimate", *RATES, "speed", "turn_rate"):
         values[name] = getattr(result, name, float("nan"))
     for name in ("mme", "mpv", "mom"):
         if getattr(result, name, None) is not None:

@@ -62,7 +62,8 @@ class WindowResult:
     """Scores of one window. pne (nats), cpv (m²); mme, mpv, mom when baselines are on (else None).
 
     rot_rate (deg/s) and trans_rate (m/s): the drift rates the co-plane groups show (metrics/drift_rate.py);
-    rpe_estimate: the RPE (Eq. 4) those rates give over the window's consecutive scans.
+    rpe_estimate: the RPE (Eq. 4) those rates give over the window's consecutive scans. speed (m/s) and
+    turn_rate (deg/s): the sensor's motion over the window by the SLAM poses (what relative limits scale with).
     n_planes: planes in the window; n_groups: CPV co-plane groups; n_clusters: PNE normal clusters.
     pne / cpv / rates are NaN when the window has no normal cluster / co-plane group. timings: ms per metric.
 
@@ -77,6 +78,8 @@ class WindowResult:
     rot_rate: float = float("nan")
     trans_rate: float = float("nan")
     rpe_estimate: float = float("nan")
+    speed: float = float("nan")
+    turn_rate: float = float("nan")
     mme: float | None = None
     mpv: float | None = None
     mom: float | None = None
@@ -287,13 +290,27 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
         wp = window_planes(scans, poses)
     stamps = [s.stamp for s in scans]
     ps = plane_metrics(wp, stamps, config, timings)
+    speed, turn_rate = window_motion(poses, stamps)
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
-                          rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), timings=timings)
+                          rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), speed=speed,
+                          turn_rate=turn_rate, timings=timings)
     if config.metrics.baselines:
         _baselines(result, scans, poses, config)
     timings["total"] = 1000.0 * (time.perf_counter() - start)
     return result
+
+
+def window_motion(poses: np.ndarray, stamps) -> tuple[float, float]:
+    """(speed m/s, turn rate deg/s) of a window: the path length and the summed rotation angle between its
+    consecutive (K, 4, 4) poses over its duration; NaN for a single scan."""
+    span = float(stamps[-1] - stamps[0]) if len(stamps) > 1 else 0.0
+    if span <= 0:
+        return float("nan"), float("nan")
+    steps = geometry.inverse(poses[:-1]) @ poses[1:]
+    distance = float(np.linalg.norm(steps[:, :3, 3], axis=1).sum())
+    turn = float(np.degrees(geometry.rotation_angle(steps[:, :3, :3])).sum())
+    return distance / span, turn / span
 
 
 def baselines(clouds: Sequence[np.ndarray], poses: np.ndarray, m) -> dict[str, float]:

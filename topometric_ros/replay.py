@@ -30,7 +30,7 @@ from .monitor import Monitor
 from .reports import write_csv
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
-RECORD_FORMAT = 3  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit
+RECORD_FORMAT = 4  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed, turn rate and per-window rate limits
 
 
 @dataclass
@@ -142,12 +142,10 @@ class _Recorder:
             if getattr(result, name) is not None:
                 rec[name] = getattr(result, name)
         rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
-        limits = m.health.config
-        for rate in RATES:
-            rec[f"{rate}_warn_at"] = getattr(limits, f"{rate}_warn") or float("nan")
-            rec[f"{rate}_error_at"] = getattr(limits, f"{rate}_error") or float("nan")
-        for metric in ("pne", "cpv"):
-            rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
+        rec.update(speed=result.speed, turn_rate=result.turn_rate)
+        for metric in ("pne", "cpv", *RATES):
+            if metric in ("pne", "cpv"):
+                rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
             rec[f"{metric}_warn_at"] = a.warn_at.get(metric, float("nan")) if a else float("nan")
             rec[f"{metric}_error_at"] = a.error_at.get(metric, float("nan")) if a else float("nan")
         rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})

@@ -114,7 +114,8 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
     copies with level and message replaced. Exactly what a replay with that health config gives."""
     h, out = Health(health), []
     for r in records:
-        res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan))
+        res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan),
+                      r.get("speed", np.nan), r.get("turn_rate", np.nan))
         h.assess(res)
         out.append({**r, "level": res.level, "message": res.message})
     return out
@@ -123,9 +124,11 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
 class _Window:
     """The fields of a WindowResult health.py reads."""
 
-    def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float):
+    def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float,
+                 speed: float = np.nan, turn_rate: float = np.nan):
         self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
         self.rot_rate, self.trans_rate = float(rot_rate), float(trans_rate)
+        self.speed, self.turn_rate = float(speed), float(turn_rate)
         self.level, self.message = "OK", ""
 
 
