@@ -103,6 +103,7 @@ class HealthConfig:
     """Drift alarms (health.py)."""
 
     stale_after_s: float = 5.0  # no input for this long (bag/sim time aware) -> STALE
+    clock_jump_s: float = 0.5  # s, a cloud or odometry stamp this far off its stream's clock is a clock fault (reported apart, not as drift; 0 = off)
     fail_after_s: float = 1.0  # s, scans arrive but every one fails (bad layout, no pose, ...) for this long -> ERROR with the reason
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps

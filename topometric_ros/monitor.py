@@ -37,10 +37,11 @@ from .window import Frame, PoseBuffer, SlidingWindow
 #: Every counter the monitor keeps, in report order.
 COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue_full", "dropped_no_pose",
             "dropped_duplicate", "dropped_bad_scan", "nonfinite_points", "no_return_points", "bad_beam_points",
-            "scans_deskewed", "not_deskewed", "bad_poses", "duplicate_poses", "time_resets", "scan_errors",
+            "scans_deskewed", "not_deskewed", "dropped_clock", "clock_fault_poses", "bad_poses", "duplicate_poses", "time_resets", "scan_errors",
             "window_errors", "windows_discarded")
 #: Counters that are scans lost before processing.
-DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "scan_errors")
+DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "dropped_clock",
+                 "scan_errors")
 MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
 STAGE_QUEUE = 2  # live: items between two per-scan stages (the upstream stage waits when full)
 
@@ -68,6 +69,42 @@ def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
     if v.shape != (7,) or not np.all(np.isfinite(v)):
         raise ValueError(f"extrinsic must be 7 finite numbers [x y z qx qy qz qw], got {list(values)!r}")
     return geometry.pose_from_quat(v[3:], v[:3])
+
+
+class ClockWatch:
+    """Do clouds and odometry keep one clock? Each stream's offset (header stamp minus receive time, s) is
+    steady while they do: network and driver delays move it by milliseconds, a clock fault (a driver or PTP
+    resync, a wrong time source) by seconds. A cloud whose offset, taken against the odometry's recent median,
+    leaves its own baseline (the median of the last accepted clouds) by ``jump_s`` or more is a clock fault,
+    and so is an odometry message whose offset leaves the odometry's median. Without receive times there is
+    nothing to compare and nothing is flagged."""
+
+    HISTORY = 25  # messages per stream in the medians
+
+    def __init__(self, jump_s: float):
+        self.jump_s = float(jump_s)
+        self._odom: deque = deque(maxlen=self.HISTORY)
+        self._cloud: deque = deque(maxlen=self.HISTORY)
+
+    def odometry(self, stamp: float, received: float | None) -> str:
+        """'' when the odometry message fits its stream's clock, else the fault."""
+        if received is None or self.jump_s <= 0:
+            return ""
+        offset = stamp - received
+        if len(self._odom) >= 3 and abs(offset - np.median(self._odom)) >= self.jump_s:
+            return f"clock fault: odometry stamps jumped {offset - np.median(self._odom):+.2f} s against their receive times"
+        self._odom.append(offset)
+        return ""
+
+    def cloud(self, stamp: float, received: float | None) -> str:
+        """'' when the cloud fits the clock the odometry keeps, else the fault (the cloud is not to be used)."""
+        if received is None or self.jump_s <= 0 or len(self._odom) < 3:
+            return ""
+        lead = (stamp - received) - float(np.median(self._odom))  # s the cloud clock runs ahead of the odometry's
+        if len(self._cloud) >= 3 and abs(lead - np.median(self._cloud)) >= self.jump_s:
+            return f"clock fault: cloud stamps jumped {lead - np.median(self._cloud):+.2f} s against the odometry"
+        self._cloud.append(lead)
+        return ""
 
 
 def _clock(stamp: Any, received: float | None) -> float | None:
@@ -159,6 +196,9 @@ class Monitor:
         self.model = pipeline.sensor_model(self.config)  # sensors.SensorModel or None (layout read off each cloud)
         self.layout = ""  # driver layout of the last cloud (sensors.LAYOUTS name, "" unknown)
         self.last_note = ""  # why a cloud's field was not used (e.g. an unusable time field)
+        self.clock = ClockWatch(self.config.health.clock_jump_s)
+        self.clock_fault: tuple[float | None, str] | None = None  # the last clock fault: (receive time, reason)
+        self.clock_events: deque = deque(maxlen=1000)  # every clock fault, for the reports
         self.extrinsic = extrinsic_from_list(w.extrinsic)
         self.extrinsic_source = "config"
         self.static_tf = StaticTransforms()
@@ -320,6 +360,10 @@ class Monitor:
         if not np.isfinite(stamp) or not _valid_pose(pose):
             self._error("bad_poses", f"pose at {stamp} is not a finite rigid transform")
             return False
+        fault = self.clock.odometry(float(stamp), received)
+        if fault:
+            self._clock_fault("clock_fault_poses", fault, received)
+            return False
         self.last_pose_received = float(stamp if received is None else received)
         status = self.poses.add(stamp, pose)
         if status == "duplicate":
@@ -351,6 +395,10 @@ class Monitor:
         scan = self._checked_scan(stamp, points, extra, finite, clock)
         if scan is None:
             return False
+        fault = self.clock.cloud(scan.stamp, received)
+        if fault:  # a cloud on another clock would get another moment's pose: drift that is not there
+            self._clock_fault("dropped_clock", fault, received)
+            return False
         scan.columns, scan.sweep = columns, sweep
         if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
             if scan.stamp == self._last_scan_stamp:
@@ -364,6 +412,14 @@ class Monitor:
             self._error("dropped_no_pose", "too many scans waiting for odometry", lost.received)
         self._resolve_pending()
         return True
+
+    def _clock_fault(self, counter: str, message: str, received: float | None) -> None:
+        """A message on another clock: counted and dropped; ``clock_fault`` keeps (receive time, reason) for
+        the periodic check and the reports, which say it apart from drift."""
+        self.count(counter)
+        self.last_error = message
+        self.clock_fault = (received, message)
+        self.clock_events.append(self.clock_fault)
 
     def _checked_scan(self, stamp, points, extra: dict, finite: bool, received: float | None) -> _Scan | None:
         """The scan with non-finite points removed (skipped when ``finite``: already filtered), or None."""
@@ -584,6 +640,15 @@ class Monitor:
         with self._lock:
             since, last = self.failing_since, self.last_processed
         return self.health.failing(now, since, last, self.last_error, self.counters)
+
+    def clock_status(self, now: float) -> tuple[str, str] | None:
+        """("ERROR", reason) while a clock fault was seen within health.stale_after_s before ``now`` (the
+        receive clock), else None: its own status, apart from the map-consistency one."""
+        if self.clock_fault is None or self.clock_fault[0] is None:
+            return None
+        if now - self.clock_fault[0] > self.config.health.stale_after_s:
+            return None
+        return "ERROR", self.clock_fault[1]
 
     def check(self, now: float) -> tuple[str, str] | None:
         """What the periodic check reports at ``now``: STALE (input stopped; with the failure reason when scans

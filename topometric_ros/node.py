@@ -10,6 +10,7 @@ conventions (its Updater publishes on /diagnostics every ``diagnostic_updater.pe
   ERROR with the reason when scans arrive but every one fails (Monitor.check, checked every CHECK_PERIOD_S
   and published at once when the state changes);
 - ``scan rate``: diagnostic_updater.FrequencyStatus of the clouds received;
+- ``clock``: ERROR while clouds or odometry arrive on another clock (a clock fault, not drift);
 - ``latency``: node clock minus the stamp of a window's last scan when its result is out (s).
 
 Optionally each window's planes go out as a MarkerArray on ~/planes (map frame, the inliers' rectangles).
@@ -121,7 +122,7 @@ class MonitorNode(Node):
         self._lock = threading.Lock()
         self._last_window = None  # (level, message, values) of the newest window
         self._latency = {"last": float("nan"), "max": float("nan"), "windows": 0}
-        self._checked = None  # the last Monitor.check outcome published
+        self._checked = (None, None)  # the last Monitor.check and clock_status outcomes published
         self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window)
         self.updater.setHardwareID(p["hardware_id"] or "none")
         self.updater.add(TASK, self._consistency_task)
@@ -129,6 +130,7 @@ class MonitorNode(Node):
             {"min": p["scan_rate_min_hz"], "max": p["scan_rate_max_hz"]}, 0.1, 5), "scan rate")
         self.updater.add(self.rate)
         self.updater.add("latency", self._latency_task)
+        self.updater.add("clock", self._clock_task)
         self.marker_pub = self.create_publisher(MarkerArray, "~/planes", 1) if p["publish_markers"] else None
         self.create_subscription(PointCloud2, p["points_topic"], self._on_cloud, _qos(p["points_qos"]))
         self.create_subscription(Odometry, p["odom_topic"], self._on_odom, _qos(p["odom_qos"]))
@@ -238,10 +240,24 @@ class MonitorNode(Node):
         stat.add("queue", str(self.monitor.in_flight))
         return stat
 
+    def _clock_task(self, stat):
+        """The Updater's 'clock': ERROR while clouds or odometry arrive on another clock (monitor.ClockWatch),
+        reported here and not as drift (such messages are dropped, not scored)."""
+        fault = self.monitor.clock_status(self._now())
+        if fault is None:
+            stat.summary(DiagnosticStatus.OK, "clouds and odometry keep one clock")
+        else:
+            stat.summary(DiagnosticStatus.ERROR, fault[1])
+        counters = self.monitor.counters
+        stat.add("dropped_clock", str(counters["dropped_clock"]))
+        stat.add("clock_fault_poses", str(counters["clock_fault_poses"]))
+        return stat
+
     def _on_check(self) -> None:
-        """Publish at once when STALE / every-scan-failing starts or ends (the Updater repeats it)."""
-        checked = self.monitor.check(self._now())
-        changed = (checked and checked[0]) != (self._checked and self._checked[0])
+        """Publish at once when STALE / every-scan-failing / a clock fault starts or ends (the Updater repeats it)."""
+        now = self._now()
+        checked = self.monitor.check(now), self.monitor.clock_status(now)
+        changed = [c and c[0] for c in checked] != [c and c[0] for c in self._checked]
         self._checked = checked
         if changed:
             self.updater.force_update()

@@ -51,7 +51,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "segmentation.threads": (1, 64), "segmentation.min_confidence": (0.0, 1.0),
     "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000),
-    "health.stale_after_s": (0.1, 3600.0), "health.fail_after_s": (0.0, 3600.0),
+    "health.stale_after_s": (0.1, 3600.0), "health.fail_after_s": (0.0, 3600.0), "health.clock_jump_s": (0.0, 3600.0),
     "health.baseline_windows": (1, 100_000), "health.baseline_history": (1, 1_000_000),
     "health.warn_sigma": (0.0, 1000.0), "health.error_sigma": (0.0, 1000.0),
     "health.warn_persist": (1, 1000), "health.persist_windows": (1, 1000),

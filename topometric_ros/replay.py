@@ -25,7 +25,7 @@ import numpy as np
 
 from . import bag, geometry
 from .config import Config
-from .health import RATES, diagnostic_array, diagnostic_status, window_values
+from .health import RATES, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
 from .reports import write_csv
 
@@ -129,6 +129,7 @@ class _Recorder:
         self.lock = threading.Lock()
         self.records: list[dict] = []
         self.poses: list[list] = []  # per window: the scans' (stamp, sensor pose)
+        self.clock_faults: list[dict] = []
         self.monitor_ref = monitor_ref
         self.hardware_id = hardware_id
 
@@ -160,6 +161,14 @@ class _Recorder:
 
     def stale(self, stamp: float, reason: str, hardware_id: str) -> None:
         status = diagnostic_status(self.types, "STALE", reason, {}, hardware_id=hardware_id)
+        with self.lock:
+            self.writer.write(DIAGNOSTICS_TOPIC, stamp, diagnostic_array(self.types, stamp, [status]))
+
+    def clock_fault(self, stamp: float, reason: str, hardware_id: str) -> None:
+        """A clock fault as its own ERROR status ("<node>: clock"), apart from the map-consistency windows."""
+        self.clock_faults.append({"received": stamp, "message": reason})
+        status = diagnostic_status(self.types, "ERROR", reason, {}, name=status_name(task="clock"),
+                                   hardware_id=hardware_id)
         with self.lock:
             self.writer.write(DIAGNOSTICS_TOPIC, stamp, diagnostic_array(self.types, stamp, [status]))
 
@@ -217,6 +226,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                 if stale and not stale_reported:
                     rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
                 stale_reported = bool(stale)
+            faults = len(monitor.clock_events)
             if topic == opt.points_topic:
                 monitor.add_cloud(msg, received=t)
                 n_scans += 1
@@ -232,6 +242,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                     pass
             elif topic == opt.tf_static_topic:
                 monitor.add_tf_static(msg)
+            if len(monitor.clock_events) > faults:
+                rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
     except Exception as e:  # noqa: BLE001 - a broken bag is reported, the work done so far is kept
         error = f"{type(e).__name__}: {e}"
     finally:
@@ -245,6 +257,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     if gt_stamps:
         _add_rpe(records, rec.poses, np.asarray(gt_stamps), np.stack(gt_poses), monitor.extrinsic)
     summary = _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed)
+    summary["clock_faults"] = rec.clock_faults
     per_scan = 1000 / max(1, summary["scans_processed"])
     summary["cpu_ms_per_scan"] = {"reader": round(reader_cpu * per_scan, 2),  # reading + decoding (this thread)
                                   **{f"stage{i}": round(c * per_scan, 2) for i, c in enumerate(monitor.stage_cpu_s)}}
@@ -405,10 +418,14 @@ def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
               f"ERROR {s['levels']['ERROR']})",
               f"scans          {s['scans_read']} read, {s['scans_processed']} processed, {c['dropped_scans']} dropped "
               f"(no pose {c['dropped_no_pose']}, queue {c['dropped_queue_full']}, bad {c['dropped_bad_scan']}, "
-              f"duplicate {c['dropped_duplicate']}, errors {c['scan_errors']})",
+              f"duplicate {c['dropped_duplicate']}, clock {c.get('dropped_clock', 0)}, errors {c['scan_errors']})",
               f"speed          {s['scans_per_s']} scans/s, {s['x_realtime']}x real time ({s['mode']}, "
               f"{s['wall_s']:.1f} s wall for {s['bag_s']:.1f} s of bag)",
               f"extrinsic      from {s['extrinsic_source']}"]
+    if s.get("clock_faults"):
+        first = s["clock_faults"][0]
+        lines.append(f"clock faults   {len(s['clock_faults'])} message(s) on another clock, first at "
+                     f"{first['received'] - t0:.1f} s: {first['message']} (reported as 'clock', not as drift)")
     if s["notes"]:
         lines.append("notes          " + "; ".join(s["notes"]))
     if s["error"]:

@@ -1,0 +1,41 @@
+"""Clock faults: clouds stamped against another clock than the odometry are reported as such, not as drift."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from topometric_ros.config import load_config
+from topometric_ros.monitor import ClockWatch
+
+
+def test_the_clock_watch_flags_a_jump_either_way_and_only_a_jump():
+    w = ClockWatch(0.5)
+    for k in range(10):  # odometry stamped at arrival, clouds 0.12 s before it, a few ms of jitter
+        assert w.odometry(100.0 + 0.05 * k, 100.0 + 0.05 * k + 0.003 * (k % 3)) == ""
+    for k in range(5):
+        assert w.cloud(100.0 + 0.2 * k, 100.12 + 0.2 * k + 0.004 * (k % 2)) == ""
+    assert "jumped +1.00 s" in w.cloud(102.0, 101.12)  # stamped a second ahead
+    assert "jumped -1.00 s" in w.cloud(100.0, 101.12)  # a second behind
+    assert w.cloud(101.2, 101.32) == ""  # back on the clock: fine again
+    assert "odometry stamps jumped" in w.odometry(110.0, 104.0)
+    assert ClockWatch(0.5).cloud(5.0, None) == ""  # no receive times: nothing to compare
+
+
+@pytest.mark.parametrize("offset", [1.0, -1.0, 5.0])
+def test_a_cloud_clock_jump_is_a_clock_fault_within_two_windows_and_no_drift_alarm(tmp_path, offset):
+    from topometric_ros.replay import ReplayOptions, replay
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import START_TIME, SimConfig, simulate
+
+    path = tmp_path / "bag"
+    simulate(SimConfig(scene="office1", frames=120, clock_jump=(12.0, offset, 6.0), drift=DriftSpec("none")),
+             path, progress=False)
+    res = replay(path, tmp_path / "out", load_config(overrides={"segmentation.mode": "labels"}),
+                 ReplayOptions(plot=False, progress=False))
+    faults = res.summary["clock_faults"]
+    window_s = 5 / 5.0  # five scans at 5 Hz
+    assert faults and faults[0]["received"] - (START_TIME + 12.0) <= 2 * window_s
+    assert f"jumped {offset:+.2f} s" in faults[0]["message"]
+    assert [w["level"] for w in res.windows] == ["OK"] * len(res.windows)  # no drift alarm, before or after
+    assert res.summary["counters"]["dropped_clock"] == pytest.approx(6.0 * 5.0, abs=1)
+    assert np.isfinite([w["pne"] for w in res.windows]).all()
