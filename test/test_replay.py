@@ -81,7 +81,8 @@ def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
     assert (tmp_path / "out" / "metrics.png").stat().st_size > 10_000
 
 
-def test_replay_of_a_truncated_bag_reports_the_error_and_keeps_what_it_processed(office_bag, tmp_path):
+def test_replay_of_a_truncated_bag_keeps_what_it_holds_and_says_so(office_bag, tmp_path):
+    """(The damaged-bag variants and their intact-scan counts are in test_damaged_bags.)"""
     bag_path, _ = office_bag
     broken = tmp_path / "broken"
     shutil.copytree(bag_path, broken)
@@ -90,10 +91,10 @@ def test_replay_of_a_truncated_bag_reports_the_error_and_keeps_what_it_processed
     mcap_file.write_bytes(data[: int(len(data) * 0.6)])
     res = run(broken, tmp_path / "out")
     s = res.summary
-    assert s["error"] and "index unreadable" in s["notes"][0]
-    assert 0 < s["scans_read"] < 30 and 1 <= s["windows"] < 6
+    assert s["error"] == "" and "no readable summary" in s["notes"][0] and s["notes"][-1].startswith("damaged bag:")
+    assert 0 < s["scans_read"] < 30 and 1 <= s["windows"] < 6 and s["bag_read"]["chunks_damaged"] == 1
     assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == s["windows"]
-    assert json.loads((tmp_path / "out" / "windows.json").read_text())["summary"]["error"] == s["error"]
+    assert json.loads((tmp_path / "out" / "windows.json").read_text())["summary"]["notes"] == s["notes"]
 
 
 def test_realtime_mode_runs_through_the_live_worker(office_bag, tmp_path):
@@ -183,11 +184,78 @@ def test_replay_cli_exit_codes(office_bag, tmp_path, capsys):
     broken = tmp_path / "broken"
     shutil.copytree(bag_path, broken)
     (f,) = broken.glob("*.mcap")
-    f.write_bytes(f.read_bytes()[:100_000])
+    f.write_bytes(f.read_bytes()[:100_000])  # not one whole cloud left
     assert cli.main(["replay", str(broken), "--out", str(tmp_path / "o2"), "--quiet", "--no-plot",
                      "--segmentation", "labels"]) == 1
     out = capsys.readouterr().out
-    assert "ERROR" in out and (tmp_path / "o2" / "windows.json").exists()
+    assert "NO SCAN PROCESSED: no message of /points could be read" in out and "damaged bag:" in out
+    assert (tmp_path / "o2" / "windows.json").exists()
+
+
+def rewrite(src, dst, change, scans=6):
+    """The first ``scans`` clouds of a bag (and everything up to them) through change(topic, msg) -> list of
+    (topic, msg) to write instead."""
+    from topometric_ros import bag
+
+    n = 0
+    with bag.BagWriter(dst) as w:
+        for topic, t_ns, msg in bag.read_messages(src):
+            n += topic == "/points"
+            if n > scans:
+                break
+            for new_topic, new_msg in change(topic, msg):
+                w.write(new_topic, t_ns * 1e-9, new_msg)
+    return dst
+
+
+def replay_cli(bag_path, out, capsys, *extra):
+    from topometric_ros import cli
+
+    code = cli.main(["replay", str(bag_path), "--out", str(out), "--quiet", "--no-plot", *extra])
+    return code, capsys.readouterr().out, json.loads((out / "windows.json").read_text())["summary"]
+
+
+def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):
+    """Zero scans processed: exit 1, the reason, the bag's topics with types and counts, and the mode that ran."""
+    bag_path, _ = office_bag
+
+    def no_label(topic, msg):  # what a real driver's cloud looks like: no label field
+        if topic == "/points":
+            msg = copy.copy(msg)
+            msg.fields = [f for f in msg.fields if f.name != "label"]
+        return [(topic, msg)]
+
+    cases = {
+        "labels_without_label_field": (rewrite(bag_path, tmp_path / "nolabel", no_label), ["--segmentation", "labels"],
+                                       "every scan failed in processing; last: scan",
+                                       "use --segmentation network"),
+        "no_odometry": (rewrite(bag_path, tmp_path / "noodom", lambda t, m: [] if "odom" in t else [(t, m)]),
+                        ["--segmentation", "labels"], "no odometry: /odom is not in the bag (its Odometry topics: none)",
+                        "name the topic with --odom-topic"),
+        "wrong_topic_named": (rewrite(bag_path, tmp_path / "two", lambda t, m: [(t, m)] + [("/front/points", m)] * (t == "/points")),
+                              ["--segmentation", "labels", "--points-topic", "/lidar"],
+                              "PointCloud2 topic /lidar is not in the bag (its PointCloud2 topics: /front/points, /points)",
+                              "name one with --points-topic"),
+        "topic_of_another_type": (bag_path, ["--segmentation", "none", "--points-topic", "/odom"],
+                                  "topic /odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/PointCloud2", ""),
+    }
+    for name, (path, args, reason, hint) in cases.items():
+        code, out, summary = replay_cli(path, tmp_path / f"out_{name}", capsys, *args)
+        assert code == 1 and summary["scans_processed"] == 0, (name, out)
+        assert f"NO SCAN PROCESSED: {reason}" in out and hint in out and summary["no_scans"].startswith(reason), (name, out)
+        assert "  /points  sensor_msgs/msg/PointCloud2  " in out, (name, out)
+        assert f"segmentation   {args[1]} (" in out and "sensor         read off each cloud" in out, (name, out)
+    assert "  /odom  nav_msgs/msg/Odometry  " in out  # the bag's topics with their types and counts
+
+
+def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp_path, capsys):
+    bag_path, _ = office_bag
+    rewrite(bag_path, tmp_path / "short", lambda t, m: [(t, m)], scans=6)
+    code, out, summary = replay_cli(tmp_path / "short", tmp_path / "out", capsys, "--segmentation", "labels",
+                                    "--window-size", "5", "--set", "sensor.model=VLP-32C")
+    assert code == 0 and summary["scans_processed"] == 6 and summary["no_scans"] == "", out
+    assert "segmentation   labels (the clouds' own label field)" in out and "sensor         VLP-32C, velodyne" in out
+    assert "NO SCAN" not in out
 
 
 def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):

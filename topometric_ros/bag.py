@@ -1,7 +1,10 @@
-"""rosbag2 I/O through rosbags, no ROS install needed.
+"""rosbag2 I/O, no ROS install needed.
 
-Reading streams message by message (MCAP or sqlite3, detected from the bag); writing uses ROS 2 Jazzy
-message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose child-to-parent).
+Reading streams message by message (MCAP or sqlite3, detected from the bag's files) through storage.py, which
+keeps every message a damaged bag still holds and reads a bag folder without metadata.yaml; bags it does not
+read (compressed bag files, ROS 1) go through rosbags. Messages deserialise with the ROS 2 Jazzy typestore.
+Writing uses rosbags and Jazzy message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose
+child-to-parent).
 """
 from __future__ import annotations
 
@@ -41,9 +44,17 @@ def msg_types() -> SimpleNamespace:
 
 
 def topics(path: str | Path) -> dict[str, tuple[str, int]]:
-    """{topic: (msgtype, message count)} of a bag."""
+    """{topic: (msgtype, message count)} of a bag (also of a damaged one, or one without metadata.yaml)."""
     from rosbags.highlevel import AnyReader
 
+    from . import storage
+
+    if not Path(path).exists():
+        raise BagError(f"bag not found: {path}")
+    try:
+        return storage.topic_table(path)
+    except storage.Unsupported:
+        pass
     with _open(path, AnyReader) as reader:
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
@@ -76,21 +87,53 @@ def _open(path: str | Path, reader_cls: Any) -> Any:
         raise BagError(f"cannot open bag {path}: {e}") from e
 
 
-def read_messages(path: str | Path, topic_names: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
-    """Yield (topic, receive time ns, deserialised message) in time order, one at a time.
+def read_messages(path: str | Path, topic_names: Iterable[str] | None = None, log: Any = None,
+                  strict: bool = True) -> Iterator[tuple[str, int, Any]]:
+    """Yield (topic, receive time ns, deserialised message) in time order (per storage file), one at a time.
 
-    ``topic_names`` limits the topics; a named topic missing from the bag raises BagError.
+    ``topic_names`` limits the topics; a named topic missing from the bag raises BagError (``strict``) or is
+    left out. A damaged bag gives every message it still holds; ``log`` (a storage.ReadLog) says what was
+    skipped, and counts messages that do not deserialise (skipped too).
     """
+    from . import storage
+
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    log = log if log is not None else storage.ReadLog()
+    try:
+        storage.bag_files(path)
+    except storage.Unsupported:
+        yield from _rosbags_messages(path, topic_names, strict)
+        return
+    if topic_names is not None and strict:
+        _check_topics(path, set(topic_names), set(topics(path)))
+    store = typestore()
+    for topic, msgtype, t_ns, raw in storage.read_raw(path, topic_names, log):
+        try:
+            msg = store.deserialize_cdr(raw, msgtype)
+        except Exception:  # noqa: BLE001 - a damaged or unknown message is counted and skipped
+            log.undecodable += 1
+            continue
+        yield topic, t_ns, msg
+
+
+def _check_topics(path: Path, wanted: set[str], have: set[str]) -> None:
+    missing = wanted - have
+    if missing:
+        raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {', '.join(sorted(have))})")
+
+
+def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: bool) -> Iterator[tuple[str, int, Any]]:
+    """read_messages through rosbags' AnyReader (bags storage.py does not read)."""
     from rosbags.highlevel import AnyReader
 
     with _open(path, AnyReader) as reader:
         conns = reader.connections
         if topic_names is not None:
             wanted = set(topic_names)
-            missing = wanted - {c.topic for c in conns}
-            if missing:
-                have = ", ".join(sorted({c.topic for c in conns}))
-                raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {have})")
+            if strict:
+                _check_topics(path, wanted, {c.topic for c in conns})
             conns = [c for c in conns if c.topic in wanted]
         for conn, t_ns, raw in reader.messages(connections=conns):
             yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)

@@ -101,7 +101,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(format_table(res.windows, res.summary))
     print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
           + ("" if args.no_plot else ", metrics.png"))
-    return 1 if res.summary["error"] else 0
+    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -153,7 +153,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print()
     print(format_table(res.windows, res.summary))
     print(f"plot: {out / 'replay' / 'metrics.png'}; diagnostics: {out / 'replay' / 'diagnostics.mcap'}")
-    return 1 if res.summary["error"] else 0
+    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
 
 
 def _floats(text: str) -> tuple:
