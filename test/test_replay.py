@@ -81,6 +81,36 @@ def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
     assert (tmp_path / "out" / "metrics.png").stat().st_size > 10_000
 
 
+def test_reports_hold_stamps_at_full_precision_and_strict_json(office_bag, tmp_path):
+    """windows.csv and windows.json give back every stamp exactly (1700000001.2, not 1.7e+09); windows.json is
+    strict JSON (a metric that could not be computed is null, not a bare NaN that jq rejects); load_windows
+    turns the nulls back into NaN."""
+    import subprocess
+
+    from topometric_ros.replay import load_windows
+
+    bag_path, _ = office_bag
+    res = run(bag_path, tmp_path / "out", plot=False)
+    path = tmp_path / "out" / "windows.json"
+
+    def refuse(constant):
+        raise ValueError(f"non-standard JSON constant {constant}")
+
+    doc = json.loads(path.read_text(), parse_constant=refuse)
+    nan_keys = {k for r in res.windows for k, v in r.items() if isinstance(v, float) and not np.isfinite(v)}
+    assert nan_keys and all(w[k] is None for w, r in zip(doc["windows"], res.windows) for k in nan_keys
+                            if not np.isfinite(r[k]))  # the baseline windows have no z-score yet
+    rows = list(csv.DictReader(open(tmp_path / "out" / "windows.csv")))
+    for row, w, r in zip(rows, doc["windows"], res.windows):
+        assert float(row["start"]) == w["start"] == r["start"] and float(row["end"]) == w["end"] == r["end"]
+        assert float(row["pne"]) == r["pne"] and r["end"] % 1 > 0  # sub-second stamps survive
+    back = load_windows(path)["windows"]
+    assert all(np.isnan(b[k]) for b, r in zip(back, res.windows) for k in nan_keys if not np.isfinite(r[k]))
+    if shutil.which("jq"):  # the strict parser the issue names
+        out = subprocess.run(["jq", "-e", ".windows | length", str(path)], capture_output=True, text=True)
+        assert out.returncode == 0 and out.stdout.strip() == str(len(res.windows)), out.stderr
+
+
 def test_replay_of_a_truncated_bag_keeps_what_it_holds_and_says_so(office_bag, tmp_path):
     """(The damaged-bag variants and their intact-scan counts are in test_damaged_bags.)"""
     bag_path, _ = office_bag

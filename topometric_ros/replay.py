@@ -2,7 +2,8 @@
 
 Outputs in the output folder: ``diagnostics.mcap`` (diagnostic_msgs/DiagnosticArray on /diagnostics,
 stamped in bag time; opens in Foxglove and ``ros2 bag``), ``windows.csv`` and ``windows.json`` (every
-window's metrics, timings, level, reason; the JSON also holds the summary and counters) and
+window's metrics, timings, level, reason, floats at full precision; the JSON is strict, null where a metric is
+NaN, and also holds the summary and counters; :func:`load_windows` reads it back with NaN) and
 ``metrics.png`` (PNE, CPV, drift rates and the RPE estimate over time with alarm bands; the true RPE
 when the bag has ground truth).
 
@@ -27,7 +28,7 @@ from . import bag, geometry, storage
 from .config import Config, flatten
 from .health import RATES, diagnostic_array, diagnostic_status, window_values
 from .monitor import Monitor
-from .reports import write_csv
+from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 RECORD_FORMAT = 3  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit
@@ -343,21 +344,18 @@ def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | N
     keys: list[str] = []
     for r in records:
         keys += [k for k in r if k not in keys]
-    write_csv(out / "windows.csv", [{k: _csv(r.get(k, "")) for k in keys} for r in records])
-    (out / "windows.json").write_text(json.dumps({"summary": summary, "windows": records}, indent=1,
-                                                 default=_json))
+    write_csv(out / "windows.csv", [{k: csv_value(r.get(k, "")) for k in keys} for r in records])
+    write_json(out / "windows.json", {"summary": summary, "windows": records})
     if plot:
         plot_metrics(records, out / "metrics.png", truth)
 
 
-def _csv(v):
-    return f"{v:.6g}" if isinstance(v, float) else v
-
-
-def _json(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    raise TypeError(f"not JSON serialisable: {type(v)}")
+def load_windows(path: str | Path) -> dict:
+    """A windows.json as written ({'summary', 'windows'}), with the window records' nulls back as NaN (strict
+    JSON has no NaN: a metric that could not be computed is written as null)."""
+    doc = json.loads(Path(path).read_text())
+    doc["windows"] = [{k: float("nan") if v is None else v for k, v in r.items()} for r in doc.get("windows", [])]
+    return doc
 
 
 LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
