@@ -111,6 +111,35 @@ def test_reports_hold_stamps_at_full_precision_and_strict_json(office_bag, tmp_p
         assert out.returncode == 0 and out.stdout.strip() == str(len(res.windows)), out.stderr
 
 
+def test_metrics_png_says_what_it_shows_and_keeps_its_legend_off_the_data(office_bag, tmp_path):
+    """Title: bag and segmentation mode; a unit on every axis; one legend outside every plot, with the WARN and
+    ERROR limits and the baseline-learning span (health.baseline_windows = 2 here: shaded over windows 0-1)."""
+    from topometric_ros.replay import metrics_figure, plot_metrics
+    from topometric_ros.reports import pyplot
+
+    bag_path, truth = office_bag
+    res = run(bag_path, tmp_path / "out", plot=False)
+    fig = metrics_figure(res.windows, truth, res.summary)
+    fig.canvas.draw()
+    title = fig.get_suptitle()
+    assert "bag office1_rt" in title and "segmentation network" in title  # run() keeps the config's mode
+    axes = fig.axes
+    assert len(axes) == 5 and all("(" in ax.get_ylabel() for ax in axes)  # a unit (or what it is) on each
+    assert "‖E−I‖_F" in axes[-1].get_ylabel() and "(s)" in axes[-1].get_xlabel()
+    (legend,) = fig.legends
+    labels = [t.get_text() for t in legend.get_texts()]
+    for wanted in ("WARN limit", "ERROR limit", "WARN window", "ERROR window", "learning baseline (2 windows)",
+                   "RPE from ground truth"):
+        assert wanted in labels, labels
+    box = legend.get_window_extent()
+    assert all(not box.overlaps(ax.get_window_extent()) for ax in axes)  # outside the data
+    spans = [p for p in axes[0].patches if abs(p.get_x() - 0.0) < 1e-9]  # the baseline span starts at 0 s
+    assert any(abs(p.get_width() - (res.windows[1]["end"] - res.windows[0]["start"])) < 1e-6 for p in spans)
+    pyplot().close(fig)
+    plot_metrics(res.windows, tmp_path / "m.png", truth, res.summary)
+    assert (tmp_path / "m.png").stat().st_size > 10_000
+
+
 def test_replay_of_a_truncated_bag_keeps_what_it_holds_and_says_so(office_bag, tmp_path):
     """(The damaged-bag variants and their intact-scan counts are in test_damaged_bags.)"""
     bag_path, _ = office_bag

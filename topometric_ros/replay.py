@@ -347,7 +347,7 @@ def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | N
     write_csv(out / "windows.csv", [{k: csv_value(r.get(k, "")) for k in keys} for r in records])
     write_json(out / "windows.json", {"summary": summary, "windows": records})
     if plot:
-        plot_metrics(records, out / "metrics.png", truth)
+        plot_metrics(records, out / "metrics.png", truth, summary)
 
 
 def load_windows(path: str | Path) -> dict:
@@ -359,52 +359,109 @@ def load_windows(path: str | Path) -> dict:
 
 
 LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
+BASELINE_COLOUR = "#7fa7d0"
+#: (record key, axis label with its unit) of each row of metrics.png
+PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate", "rotation drift (°/s)"),
+             ("trans_rate", "translation drift (m/s)"),
+             ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)")]
 
 
-def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> None:
-    """PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground truth) per
-    window over bag time, WARN/ERROR windows shaded, thresholds dashed, simulated drift episodes (truth.json)
-    hatched."""
+def plot_metrics(records: list[dict], path: Path, truth: dict | None = None, summary: dict | None = None) -> None:
+    """metrics.png: PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground
+    truth) per window over bag time; WARN/ERROR windows shaded, their limits dashed, simulated drift episodes
+    (truth.json) hatched, the baseline-learning windows (health.baseline_windows, from the summary's config)
+    shaded and labelled; bag, segmentation mode and sensor in the title; one legend, outside the plots."""
+    from .reports import pyplot
+
+    fig = metrics_figure(records, truth, summary)
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+
+
+def metrics_figure(records: list[dict], truth: dict | None = None, summary: dict | None = None):
+    """The matplotlib figure of :func:`plot_metrics` (the caller closes it)."""
     from .reports import pyplot
 
     plt = pyplot()
-
-    rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)"), ("rot_rate", "rotation drift (°/s)"),
-            ("trans_rate", "translation drift (m/s)"), ("rpe_estimate", "RPE estimate")]
-    has_rpe = any(np.isfinite(r.get("rpe", np.nan)) for r in records)
-    fig, axes = plt.subplots(len(rows), 1, figsize=(11, 2.6 * len(rows)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(PLOT_ROWS), 1, figsize=(13, 2.6 * len(PLOT_ROWS)), sharex=True, squeeze=False,
+                             layout="constrained")
     t0 = records[0]["start"] if records else 0.0
+    learning = _baseline_span(records, summary, t0)
+    for ax, (key, label) in zip(axes[:, 0], PLOT_ROWS):
+        _plot_row(ax, records, key, label, t0, truth, learning)
+    if learning is not None:
+        axes[0, 0].annotate(f"learning baseline\n(first {learning[2]} windows:\nno PNE/CPV limits yet)",
+                            xy=(learning[0] + 0.5 * (learning[1] - learning[0]), 0.97), xycoords=("data", "axes fraction"),
+                            ha="center", va="top", fontsize=8, color="#2a4a70")
+    axes[-1, 0].set_xlabel("bag time since the first window's start (s); each point at its window's end")
+    fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right upper", fontsize=8,
+               title="per window", title_fontsize=8)
+    fig.suptitle(_plot_title(summary))
+    return fig
+
+
+def _plot_row(ax, records: list[dict], key: str, label: str, t0: float, truth: dict | None, learning) -> None:
+    """One metric over time with every band: level shading, baseline span, episodes, limits."""
     t = np.array([r["end"] - t0 for r in records])
-    for ax, (key, label) in zip(axes[:, 0], rows):
-        for r, nxt in zip(records, records[1:] + [None]):
-            if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
-                right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
-                ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
-        for ep in (truth or {}).get("episodes", []):
-            ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
-        ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3, label=label)
-        if key == "rpe_estimate" and has_rpe:
-            ax.plot(t, [r.get("rpe", np.nan) for r in records], ".-", color="#4a7ab0", lw=1, ms=3,
-                    label="RPE (ground truth)")
-            ax.legend(loc="upper left", fontsize=8)
-        if records and f"{key}_warn_at" in records[0]:
-            ax.plot(t, [r.get(f"{key}_warn_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["WARN"], lw=1)
-            ax.plot(t, [r.get(f"{key}_error_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["ERROR"], lw=1)
-        if key == "cpv" and any(r.get("cpv", 0) > 0 for r in records):
-            ax.set_yscale("log")  # a variance: drift multiplies it
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("bag time of window end (s)")
+    for r, nxt in zip(records, records[1:] + [None]):
+        if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
+            right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
+            ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
+    if learning is not None:
+        ax.axvspan(learning[0], learning[1], color=BASELINE_COLOUR, alpha=0.18, lw=0)
+    for ep in (truth or {}).get("episodes", []):
+        ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
+    ax.plot(t, [_num(r.get(key)) for r in records], "k.-", lw=1, ms=3)
+    if key == "rpe_estimate":
+        ax.plot(t, [_num(r.get("rpe")) for r in records], ".-", color="#4a7ab0", lw=1, ms=3)
+    for level in ("warn", "error"):
+        ax.plot(t, [_num(r.get(f"{key}_{level}_at")) for r in records], "--", color=LEVEL_COLOURS[level.upper()], lw=1)
+    if key == "cpv" and any(_num(r.get("cpv")) > 0 for r in records):
+        ax.set_yscale("log")  # a variance: drift multiplies it
+    ax.set_ylabel(label, fontsize=9)
+    ax.grid(alpha=0.3)
+
+
+def _num(v) -> float:
+    """A record value as a float (None, from strict JSON, and missing values as NaN)."""
+    return float("nan") if v is None else float(v)
+
+
+def _baseline_span(records: list[dict], summary: dict | None, t0: float) -> tuple[float, float, int] | None:
+    """(start, end s from t0, windows) of the baseline-learning windows at the start of the run."""
+    n = int(((summary or {}).get("config") or {}).get("health.baseline_windows", 0) or 0)
+    if not records or n <= 0:
+        return None
+    last = records[min(n, len(records)) - 1]
+    return records[0]["start"] - t0, last["end"] - t0, min(n, len(records))
+
+
+def _legend_handles(records: list[dict], truth: dict | None, learning) -> list:
+    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    handles = [Patch(color=c, alpha=0.35, label=k) for k, c in LEVEL_COLOURS.items()]
+    handles = [Line2D([], [], color="k", marker=".", lw=1, label="metric (monitor)")]
+    if any(np.isfinite(_num(r.get("rpe"))) for r in records):
+        handles.append(Line2D([], [], color="#4a7ab0", marker=".", lw=1, label="RPE from ground truth"))
+    handles += [Line2D([], [], color=LEVEL_COLOURS["WARN"], ls="--", lw=1, label="WARN limit"),
+                Line2D([], [], color=LEVEL_COLOURS["ERROR"], ls="--", lw=1, label="ERROR limit"),
+                Patch(color=LEVEL_COLOURS["WARN"], alpha=0.35, label="WARN window"),
+                Patch(color=LEVEL_COLOURS["ERROR"], alpha=0.35, label="ERROR window")]
+    if learning is not None:
+        handles.append(Patch(color=BASELINE_COLOUR, alpha=0.18, label=f"learning baseline ({learning[2]} windows)"))
     if truth and truth.get("episodes"):
         handles.append(Patch(facecolor="none", edgecolor="grey", hatch="//", label="drift episode (truth)"))
-    axes[0, 0].legend(handles=handles, loc="upper right", fontsize=8)
-    fig.suptitle("topometric: map consistency per window")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return handles
+
+
+def _plot_title(summary: dict | None) -> str:
+    """'topometric: map consistency per window — <bag>' and a line with segmentation, sensor and window."""
+    s = summary or {}
+    bag_name = Path(s.get("bag", "")).name or "?"
+    size = (s.get("config") or {}).get("window.size", "?")
+    return (f"topometric: map consistency per window — bag {bag_name}\n"
+            f"segmentation {s.get('segmentation', '?')}, sensor {s.get('sensor', '?')}"
+            f"{', ' + s['layout'] + ' layout' if s.get('layout') else ''}, {size} scans per window")
 
 
 def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
