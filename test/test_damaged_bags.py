@@ -122,7 +122,8 @@ def copy_bag(src: Path, dst: Path, metadata: bool = True) -> Path:
 
 def overwrite(file: Path, start: int, end: int, random: bool = False) -> None:
     data = bytearray(file.read_bytes())
-    fill = np.random.default_rng(7).integers(0, 256, end - start, dtype=np.uint8).tobytes() if random else bytes(end - start)
+    rng = np.random.default_rng(7)
+    fill = rng.integers(0, 256, end - start, dtype=np.uint8).tobytes() if random else bytes(end - start)
     data[start:end] = fill
     file.write_bytes(bytes(data))
 

@@ -95,7 +95,8 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
-    width = aligned(model.columns if model is not None else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
+    width = aligned(model.columns if model is not None
+                    else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
     return ScanGrid(row.astype(np.int32), azimuth_columns(pts, width), int(height), width,
                     _row_elevations(row, el, height), source)
 

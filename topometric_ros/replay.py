@@ -252,7 +252,8 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
     if summary["scans_read"] == 0:
         return f"no message of {points} could be read" + (f" ({summary['error']})" if summary["error"] else "")
     if c["dropped_bad_scan"] >= summary["scans_read"]:
-        return f"every cloud of {points} ({summary['scans_read']}) was malformed or empty; last: {summary['last_monitor_error']}"
+        return (f"every cloud of {points} ({summary['scans_read']}) was malformed or empty; "
+                f"last: {summary['last_monitor_error']}")
     if c["poses_in"] == 0:
         odoms = _of_type(topics, bag.ODOMETRY)
         where = (f"{odom} is not in the bag" if odom not in topics else f"no message of {odom} could be read")
@@ -391,7 +392,7 @@ def metrics_figure(records: list[dict], truth: dict | None = None, summary: dict
         _plot_row(ax, records, key, label, t0, truth, learning)
     if learning is not None:
         axes[0, 0].annotate(f"learning baseline\n(first {learning[2]} windows:\nno PNE/CPV limits yet)",
-                            xy=(learning[0] + 0.5 * (learning[1] - learning[0]), 0.97), xycoords=("data", "axes fraction"),
+                            xy=(0.5 * (learning[0] + learning[1]), 0.97), xycoords=("data", "axes fraction"),
                             ha="center", va="top", fontsize=8, color="#2a4a70")
     axes[-1, 0].set_xlabel("bag time since the first window's start (s); each point at its window's end")
     fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right upper", fontsize=8,

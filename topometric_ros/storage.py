@@ -38,7 +38,8 @@ Raw = tuple[str, str, int, bytes]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
-OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX, OP_DATA_END = 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x0F
+OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+OP_MESSAGE_INDEX, OP_DATA_END = 0x07, 0x0F
 COMPRESSIONS = ("", "zstd", "lz4")
 MESSAGE_HEAD = 22  # bytes of a message record body before its data: channel u16, sequence u32, two u64 times
 MAX_BAD_IDS = 4096  # sqlite3: unreadable row ids in a row before the rest of the table counts as lost
@@ -245,7 +246,8 @@ class _Mcap:
         if summary is not None and summary.statistics is not None and summary.channels:
             self._learn(summary)
             counts = summary.statistics.channel_message_counts
-            return {topic: (self.schemas.get(sid, ""), counts.get(cid, 0)) for cid, (topic, sid) in self.channels.items()}
+            return {topic: (self.schemas.get(sid, ""), counts.get(cid, 0))
+                    for cid, (topic, sid) in self.channels.items()}
         per: dict[int, int] = {}
         for _, cid, *_ in self._events():
             per[cid] = per.get(cid, 0) + 1
