@@ -252,3 +252,16 @@ def test_an_undamaged_bag_reads_as_rosbags_reads_it(bags):
             ref = [(c.topic, c.msgtype, t, bytes(raw)) for c, t, raw in reader.messages()]
         assert mine == ref and log.lines() == [] and len(mine) > FRAMES
         assert storage.topic_table(path) == {c: v for c, v in bag.topics(path).items()}
+
+
+def test_what_is_no_bag_at_all_is_a_bag_error(tmp_path):
+    """A folder without storage files and a file that is neither MCAP nor sqlite3 (rosbags tries them too)."""
+    from topometric_ros import bag
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "x.bag").write_bytes(b"not a bag at all")
+    for path in (tmp_path / "empty", tmp_path / "x.bag"):
+        with pytest.raises(bag.BagError, match="cannot open bag"):
+            bag.topics(path)
+        with pytest.raises(bag.BagError, match="cannot open bag"):
+            list(bag.read_messages(path))

@@ -9,6 +9,7 @@ child-to-parent).
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from types import SimpleNamespace
@@ -45,8 +46,6 @@ def msg_types() -> SimpleNamespace:
 
 def topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """{topic: (msgtype, message count)} of a bag (also of a damaged one, or one without metadata.yaml)."""
-    from rosbags.highlevel import AnyReader
-
     from . import storage
 
     if not Path(path).exists():
@@ -55,7 +54,7 @@ def topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return storage.topic_table(path)
     except storage.Unsupported:
         pass
-    with _open(path, AnyReader) as reader:
+    with _opened(path) as reader:
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
@@ -77,14 +76,23 @@ def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
     return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items())) or "no topics"
 
 
-def _open(path: str | Path, reader_cls: Any) -> Any:
+@contextmanager
+def _opened(path: str | Path) -> Iterator[Any]:
+    """An open rosbags AnyReader; BagError when the bag cannot be opened."""
+    from rosbags.highlevel import AnyReader
+
     path = Path(path)
     if not path.exists():
         raise BagError(f"bag not found: {path}")
     try:
-        return reader_cls([path], default_typestore=typestore())
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
     except Exception as e:  # rosbags raises several types for unreadable bags
         raise BagError(f"cannot open bag {path}: {e}") from e
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 def read_messages(path: str | Path, topic_names: Iterable[str] | None = None, log: Any = None,
@@ -102,7 +110,8 @@ def read_messages(path: str | Path, topic_names: Iterable[str] | None = None, lo
         raise BagError(f"bag not found: {path}")
     log = log if log is not None else storage.ReadLog()
     try:
-        storage.bag_files(path)
+        for file in storage.bag_files(path):
+            storage.storage_of(file)
     except storage.Unsupported:
         yield from _rosbags_messages(path, topic_names, strict)
         return
@@ -126,9 +135,7 @@ def _check_topics(path: Path, wanted: set[str], have: set[str]) -> None:
 
 def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: bool) -> Iterator[tuple[str, int, Any]]:
     """read_messages through rosbags' AnyReader (bags storage.py does not read)."""
-    from rosbags.highlevel import AnyReader
-
-    with _open(path, AnyReader) as reader:
+    with _opened(path) as reader:
         conns = reader.connections
         if topic_names is not None:
             wanted = set(topic_names)
