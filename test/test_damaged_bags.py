@@ -13,7 +13,6 @@ measures reading, not plane detection.
 """
 from __future__ import annotations
 
-import json
 import shutil
 import sqlite3
 from pathlib import Path
