@@ -81,7 +81,67 @@ def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
     assert (tmp_path / "out" / "metrics.png").stat().st_size > 10_000
 
 
-def test_replay_of_a_truncated_bag_reports_the_error_and_keeps_what_it_processed(office_bag, tmp_path):
+def test_reports_hold_stamps_at_full_precision_and_strict_json(office_bag, tmp_path):
+    """windows.csv and windows.json give back every stamp exactly (1700000001.2, not 1.7e+09); windows.json is
+    strict JSON (a metric that could not be computed is null, not a bare NaN that jq rejects); load_windows
+    turns the nulls back into NaN."""
+    import subprocess
+
+    from topometric_ros.replay import load_windows
+
+    bag_path, _ = office_bag
+    res = run(bag_path, tmp_path / "out", plot=False)
+    path = tmp_path / "out" / "windows.json"
+
+    def refuse(constant):
+        raise ValueError(f"non-standard JSON constant {constant}")
+
+    doc = json.loads(path.read_text(), parse_constant=refuse)
+    nan_keys = {k for r in res.windows for k, v in r.items() if isinstance(v, float) and not np.isfinite(v)}
+    assert nan_keys and all(w[k] is None for w, r in zip(doc["windows"], res.windows) for k in nan_keys
+                            if not np.isfinite(r[k]))  # the baseline windows have no z-score yet
+    rows = list(csv.DictReader(open(tmp_path / "out" / "windows.csv")))
+    for row, w, r in zip(rows, doc["windows"], res.windows):
+        assert float(row["start"]) == w["start"] == r["start"] and float(row["end"]) == w["end"] == r["end"]
+        assert float(row["pne"]) == r["pne"] and r["end"] % 1 > 0  # sub-second stamps survive
+    back = load_windows(path)["windows"]
+    assert all(np.isnan(b[k]) for b, r in zip(back, res.windows) for k in nan_keys if not np.isfinite(r[k]))
+    if shutil.which("jq"):  # the strict parser the issue names
+        out = subprocess.run(["jq", "-e", ".windows | length", str(path)], capture_output=True, text=True)
+        assert out.returncode == 0 and out.stdout.strip() == str(len(res.windows)), out.stderr
+
+
+def test_metrics_png_says_what_it_shows_and_keeps_its_legend_off_the_data(office_bag, tmp_path):
+    """Title: bag and segmentation mode; a unit on every axis; one legend outside every plot, with the WARN and
+    ERROR limits and the baseline-learning span (health.baseline_windows = 2 here: shaded over windows 0-1)."""
+    from topometric_ros.replay import metrics_figure, plot_metrics
+    from topometric_ros.reports import pyplot
+
+    bag_path, truth = office_bag
+    res = run(bag_path, tmp_path / "out", plot=False)
+    fig = metrics_figure(res.windows, truth, res.summary)
+    fig.canvas.draw()
+    title = fig.get_suptitle()
+    assert "bag office1_rt" in title and "segmentation network" in title  # run() keeps the config's mode
+    axes = fig.axes
+    assert len(axes) == 5 and all("(" in ax.get_ylabel() for ax in axes)  # a unit (or what it is) on each
+    assert "‖E−I‖_F" in axes[-1].get_ylabel() and "(s)" in axes[-1].get_xlabel()
+    (legend,) = fig.legends
+    labels = [t.get_text() for t in legend.get_texts()]
+    for wanted in ("WARN limit", "ERROR limit", "WARN window", "ERROR window", "learning baseline (2 windows)",
+                   "RPE from ground truth"):
+        assert wanted in labels, labels
+    box = legend.get_window_extent()
+    assert all(not box.overlaps(ax.get_window_extent()) for ax in axes)  # outside the data
+    spans = [p for p in axes[0].patches if abs(p.get_x() - 0.0) < 1e-9]  # the baseline span starts at 0 s
+    assert any(abs(p.get_width() - (res.windows[1]["end"] - res.windows[0]["start"])) < 1e-6 for p in spans)
+    pyplot().close(fig)
+    plot_metrics(res.windows, tmp_path / "m.png", truth, res.summary)
+    assert (tmp_path / "m.png").stat().st_size > 10_000
+
+
+def test_replay_of_a_truncated_bag_keeps_what_it_holds_and_says_so(office_bag, tmp_path):
+    """(The damaged-bag variants and their intact-scan counts are in test_damaged_bags.)"""
     bag_path, _ = office_bag
     broken = tmp_path / "broken"
     shutil.copytree(bag_path, broken)
@@ -90,10 +150,10 @@ def test_replay_of_a_truncated_bag_reports_the_error_and_keeps_what_it_processed
     mcap_file.write_bytes(data[: int(len(data) * 0.6)])
     res = run(broken, tmp_path / "out")
     s = res.summary
-    assert s["error"] and "index unreadable" in s["notes"][0]
-    assert 0 < s["scans_read"] < 30 and 1 <= s["windows"] < 6
+    assert s["error"] == "" and "no readable summary" in s["notes"][0] and s["notes"][-1].startswith("damaged bag:")
+    assert 0 < s["scans_read"] < 30 and 1 <= s["windows"] < 6 and s["bag_read"]["chunks_damaged"] == 1
     assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == s["windows"]
-    assert json.loads((tmp_path / "out" / "windows.json").read_text())["summary"]["error"] == s["error"]
+    assert json.loads((tmp_path / "out" / "windows.json").read_text())["summary"]["notes"] == s["notes"]
 
 
 def test_realtime_mode_runs_through_the_live_worker(office_bag, tmp_path):
@@ -183,11 +243,78 @@ def test_replay_cli_exit_codes(office_bag, tmp_path, capsys):
     broken = tmp_path / "broken"
     shutil.copytree(bag_path, broken)
     (f,) = broken.glob("*.mcap")
-    f.write_bytes(f.read_bytes()[:100_000])
+    f.write_bytes(f.read_bytes()[:100_000])  # not one whole cloud left
     assert cli.main(["replay", str(broken), "--out", str(tmp_path / "o2"), "--quiet", "--no-plot",
                      "--segmentation", "labels"]) == 1
     out = capsys.readouterr().out
-    assert "ERROR" in out and (tmp_path / "o2" / "windows.json").exists()
+    assert "NO SCAN PROCESSED: no message of /points could be read" in out and "damaged bag:" in out
+    assert (tmp_path / "o2" / "windows.json").exists()
+
+
+def rewrite(src, dst, change, scans=6):
+    """The first ``scans`` clouds of a bag (and everything up to them) through change(topic, msg) -> list of
+    (topic, msg) to write instead."""
+    from topometric_ros import bag
+
+    n = 0
+    with bag.BagWriter(dst) as w:
+        for topic, t_ns, msg in bag.read_messages(src):
+            n += topic == "/points"
+            if n > scans:
+                break
+            for new_topic, new_msg in change(topic, msg):
+                w.write(new_topic, t_ns * 1e-9, new_msg)
+    return dst
+
+
+def replay_cli(bag_path, out, capsys, *extra):
+    from topometric_ros import cli
+
+    code = cli.main(["replay", str(bag_path), "--out", str(out), "--quiet", "--no-plot", *extra])
+    return code, capsys.readouterr().out, json.loads((out / "windows.json").read_text())["summary"]
+
+
+def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):
+    """Zero scans processed: exit 1, the reason, the bag's topics with types and counts, and the mode that ran."""
+    bag_path, _ = office_bag
+
+    def no_label(topic, msg):  # what a real driver's cloud looks like: no label field
+        if topic == "/points":
+            msg = copy.copy(msg)
+            msg.fields = [f for f in msg.fields if f.name != "label"]
+        return [(topic, msg)]
+
+    cases = {
+        "labels_without_label_field": (rewrite(bag_path, tmp_path / "nolabel", no_label), ["--segmentation", "labels"],
+                                       "every scan failed in processing; last: scan",
+                                       "use --segmentation network"),
+        "no_odometry": (rewrite(bag_path, tmp_path / "noodom", lambda t, m: [] if "odom" in t else [(t, m)]),
+                        ["--segmentation", "labels"], "no odometry: /odom is not in the bag (its Odometry topics: none)",
+                        "name the topic with --odom-topic"),
+        "wrong_topic_named": (rewrite(bag_path, tmp_path / "two", lambda t, m: [(t, m)] + [("/front/points", m)] * (t == "/points")),
+                              ["--segmentation", "labels", "--points-topic", "/lidar"],
+                              "PointCloud2 topic /lidar is not in the bag (its PointCloud2 topics: /front/points, /points)",
+                              "name one with --points-topic"),
+        "topic_of_another_type": (bag_path, ["--segmentation", "none", "--points-topic", "/odom"],
+                                  "topic /odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/PointCloud2", ""),
+    }
+    for name, (path, args, reason, hint) in cases.items():
+        code, out, summary = replay_cli(path, tmp_path / f"out_{name}", capsys, *args)
+        assert code == 1 and summary["scans_processed"] == 0, (name, out)
+        assert f"NO SCAN PROCESSED: {reason}" in out and hint in out and summary["no_scans"].startswith(reason), (name, out)
+        assert "  /points  sensor_msgs/msg/PointCloud2  " in out, (name, out)
+        assert f"segmentation   {args[1]} (" in out and "sensor         read off each cloud" in out, (name, out)
+    assert "  /odom  nav_msgs/msg/Odometry  " in out  # the bag's topics with their types and counts
+
+
+def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp_path, capsys):
+    bag_path, _ = office_bag
+    rewrite(bag_path, tmp_path / "short", lambda t, m: [(t, m)], scans=6)
+    code, out, summary = replay_cli(tmp_path / "short", tmp_path / "out", capsys, "--segmentation", "labels",
+                                    "--window-size", "5", "--set", "sensor.model=VLP-32C")
+    assert code == 0 and summary["scans_processed"] == 6 and summary["no_scans"] == "", out
+    assert "segmentation   labels (the clouds' own label field)" in out and "sensor         VLP-32C, velodyne" in out
+    assert "NO SCAN" not in out
 
 
 def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):

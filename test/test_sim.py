@@ -6,7 +6,7 @@ import pytest
 
 from topometric_ros import bag, classes as C, geometry
 from topometric_ros.cli import main
-from topometric_ros.cloud import read_cloud, read_scan
+from topometric_ros.cloud import read_scan
 from topometric_ros.sim.drift import (BASE_DRIFT_ROT_DEG_S, BASE_DRIFT_TRANS_M_S, BASE_NOISE_ROT_DEG, DriftSpec,
                                       Episode, estimated_poses, plan_episodes)
 from topometric_ros.sensors import DEFAULT_SENSOR, sensor

@@ -1,11 +1,15 @@
-"""rosbag2 I/O through rosbags, no ROS install needed.
+"""rosbag2 I/O, no ROS install needed.
 
-Reading streams message by message (MCAP or sqlite3, detected from the bag); writing uses ROS 2 Jazzy
-message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose child-to-parent).
+Reading streams message by message (MCAP or sqlite3, detected from the bag's files) through storage.py, which
+keeps every message a damaged bag still holds and reads a bag folder without metadata.yaml; bags it does not
+read (compressed bag files, ROS 1) go through rosbags. Messages deserialise with the ROS 2 Jazzy typestore.
+Writing uses rosbags and Jazzy message definitions, MCAP by default. Odometry converts to (stamp s, 4×4 pose
+child-to-parent).
 """
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from types import SimpleNamespace
@@ -41,10 +45,23 @@ def msg_types() -> SimpleNamespace:
 
 
 def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]]:
-    """{topic: (msgtype, message count)} of a bag (or of several, as one)."""
-    from rosbags.highlevel import AnyReader
+    """{topic: (msgtype, message count)} of a bag (also of a damaged one, or one without metadata.yaml), or of
+    several bags read as one (a list of paths)."""
+    from . import storage
 
-    with _open(path, AnyReader) as reader:
+    if isinstance(path, (list, tuple)):
+        table: dict[str, tuple[str, int]] = {}
+        for p in path:
+            for topic, (kind, n) in topics(p).items():
+                table[topic] = (kind, table.get(topic, (kind, 0))[1] + n)
+        return table
+    if not Path(path).exists():
+        raise BagError(f"bag not found: {path}")
+    try:
+        return storage.topic_table(path)
+    except storage.Unsupported:
+        pass
+    with _opened(path) as reader:
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
@@ -66,35 +83,89 @@ def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
     return ", ".join(f"{t} ({kind}, {n})" for t, (kind, n) in sorted(topics.items())) or "no topics"
 
 
-def _open(path: str | Path | Sequence[str | Path], reader_cls: Any) -> Any:
-    """A rosbags reader over one bag, or several read as one (their messages merged in time order)."""
-    paths = [Path(p) for p in path] if isinstance(path, (list, tuple)) else [Path(path)]
-    for p in paths:
-        if not p.exists():
-            raise BagError(f"bag not found: {p}")
-    try:
-        return reader_cls(paths, default_typestore=typestore())
-    except Exception as e:  # rosbags raises several types for unreadable bags
-        raise BagError(f"cannot open bag {', '.join(map(str, paths))}: {e}") from e
-
-
-def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable[str] | None = None
-                  ) -> Iterator[tuple[str, int, Any]]:
-    """Yield (topic, receive time ns, deserialised message) in time order, one at a time, of one bag or of
-    several merged (a list of paths).
-
-    ``topic_names`` limits the topics; a named topic missing from the bag raises BagError.
-    """
+@contextmanager
+def _opened(path: str | Path) -> Iterator[Any]:
+    """An open rosbags AnyReader; BagError when the bag cannot be opened."""
     from rosbags.highlevel import AnyReader
 
-    with _open(path, AnyReader) as reader:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    try:
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
+    except Exception as e:  # rosbags raises several types for unreadable bags
+        raise BagError(f"cannot open bag {path}: {e}") from e
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable[str] | None = None, log: Any = None,
+                  strict: bool = True) -> Iterator[tuple[str, int, Any]]:
+    """Yield (topic, receive time ns, deserialised message) in time order (per storage file), one at a time;
+    of several bags read as one (a list of paths, e.g. a sidecar odometry bag beside the recording), merged in
+    receive-time order.
+
+    ``topic_names`` limits the topics; a named topic missing from the bag raises BagError (``strict``) or is
+    left out. A damaged bag gives every message it still holds; ``log`` (a storage.ReadLog) says what was
+    skipped, and counts messages that do not deserialise (skipped too).
+    """
+    from . import storage
+
+    if isinstance(path, (list, tuple)):
+        yield from _merged(path, topic_names, log, strict)
+        return
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    log = log if log is not None else storage.ReadLog()
+    try:
+        for file in storage.bag_files(path):
+            storage.storage_of(file)
+    except storage.Unsupported:
+        yield from _rosbags_messages(path, topic_names, strict)
+        return
+    if topic_names is not None and strict:
+        _check_topics(path, set(topic_names), set(topics(path)))
+    store = typestore()
+    for topic, msgtype, t_ns, raw in storage.read_raw(path, topic_names, log):
+        try:
+            msg = store.deserialize_cdr(raw, msgtype)
+        except Exception:  # noqa: BLE001 - a damaged or unknown message is counted and skipped
+            log.undecodable += 1
+            continue
+        yield topic, t_ns, msg
+
+
+def _merged(paths: Sequence[str | Path], topic_names: Iterable[str] | None, log: Any, strict: bool
+            ) -> Iterator[tuple[str, int, Any]]:
+    """read_messages of several bags merged by receive time; ``strict`` checks the topics of all of them."""
+    import heapq
+
+    wanted = None if topic_names is None else set(topic_names)
+    if wanted is not None and strict:
+        _check_topics(Path(paths[0]), wanted, set(topics(paths)))
+    streams = [read_messages(p, None if wanted is None else sorted(wanted & set(topics(p))), log, strict=False)
+               for p in paths]
+    yield from heapq.merge(*streams, key=lambda message: message[1])
+
+
+def _check_topics(path: Path, wanted: set[str], have: set[str]) -> None:
+    missing = wanted - have
+    if missing:
+        raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {', '.join(sorted(have))})")
+
+
+def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: bool) -> Iterator[tuple[str, int, Any]]:
+    """read_messages through rosbags' AnyReader (bags storage.py does not read)."""
+    with _opened(path) as reader:
         conns = reader.connections
         if topic_names is not None:
             wanted = set(topic_names)
-            missing = wanted - {c.topic for c in conns}
-            if missing:
-                have = ", ".join(sorted({c.topic for c in conns}))
-                raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {have})")
+            if strict:
+                _check_topics(path, wanted, {c.topic for c in conns})
             conns = [c for c in conns if c.topic in wanted]
         for conn, t_ns, raw in reader.messages(connections=conns):
             yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)

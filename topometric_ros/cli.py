@@ -86,11 +86,19 @@ def _monitor_config(args: argparse.Namespace):
 
 
 def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None) -> None:
-    p.add_argument("--config", help="YAML config (plain or ROS 2 parameter file, e.g. config/topometric.yaml)")
+    from .config import Config
+
+    defaults = Config()
+    p.add_argument("--config", help="YAML config (plain or ROS 2 parameter file, e.g. config/topometric.yaml; "
+                                    "without it: the built-in defaults)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config leaf, e.g. window.size=10")
-    p.add_argument("--window-size", type=int, help="scans per window (paper: 5, 10, 15)")
+    p.add_argument("--window-size", type=int, help=f"scans per window (paper: 5, 10, 15; default: the config's "
+                                                   f"window.size, {defaults.window.size})")
     p.add_argument("--segmentation", choices=("network", "labels", "none"), default=segmentation_default,
-                   help="where labels come from (labels = the bag's ground-truth label field)")
+                   help="where labels come from: network (the shipped segmentation), labels (the cloud's own label "
+                        "field: simulated bags), none (every point static)"
+                        + ("" if segmentation_default else f" (default: the config's segmentation.mode, "
+                                                           f"{defaults.segmentation.mode})"))
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -102,7 +110,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(format_table(res.windows, res.summary))
     print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
           + ("" if args.no_plot else ", metrics.png"))
-    return 1 if res.summary["error"] else 0
+    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -154,7 +162,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print()
     print(format_table(res.windows, res.summary))
     print(f"plot: {out / 'replay' / 'metrics.png'}; diagnostics: {out / 'replay' / 'diagnostics.mcap'}")
-    return 1 if res.summary["error"] else 0
+    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
 
 
 def _floats(text: str) -> tuple:
@@ -279,32 +287,53 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
     return 0
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """--help shows every option's default, "(default: ...)", lists comma-joined; options whose default is
+    nothing to show (None, False, "", an empty list) explain themselves in their help text."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text, d = action.help or "", action.default
+        nothing = d is None or d is False or d is argparse.SUPPRESS or (isinstance(d, (str, list)) and not d)
+        if "%(default)" in text or nothing or not action.option_strings:
+            return text
+        shown = ",".join(map(str, d)) if isinstance(d, (list, tuple)) else "%(default)s"
+        return f"{text} (default: {shown})"
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose help shows defaults (HelpFormatter); subcommands get the same class."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
+    p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
-    s.add_argument("--frames", type=int, default=600, help="scans per bag (default 600)")
-    s.add_argument("--rate", type=float, default=5.0, help="scans per second (5 or 10; default 5)")
-    s.add_argument("--odom-rate", type=float, default=20.0, help="odometry messages per second (default 20)")
-    s.add_argument("--speed", type=float, default=1.2, help="robot speed m/s (default 1.2)")
+    s.add_argument("--frames", type=int, default=600, help="scans per bag")
+    s.add_argument("--rate", type=float, default=5.0, help="scans per second (5 or 10)")
+    s.add_argument("--odom-rate", type=float, default=20.0, help="odometry messages per second")
+    s.add_argument("--speed", type=float, default=1.2, help="robot speed m/s")
     s.add_argument("--drift", default="none", help="MODE[:SCALE], MODE in none, r, t, rt (e.g. rt:1.5)")
     s.add_argument("--drift-kind", default="episodes", choices=("episodes", "noise"),
-                   help="drift episodes with known start/end (default) or per-pose noise")
+                   help="drift episodes with known start/end, or per-pose noise")
     s.add_argument("--seed", type=int, default=0, help="trajectory/noise seed")
     s.add_argument("--layout-seed", type=int, default=0, help="floor-plan seed (a new seed is an unseen layout)")
-    s.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"))
+    s.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="rosbag2 storage")
     s.add_argument("--sensor", default=[DEFAULT_SENSOR], type=_sensors,
                    help=f"LiDAR model(s) and their driver's cloud layout: a name, a comma list (one set of bags per "
-                        f"sensor under OUT/<sensor>/) or 'all'; default {DEFAULT_SENSOR}; known: {', '.join(SENSORS)}")
+                        f"sensor under OUT/<sensor>/) or 'all'; known: {', '.join(SENSORS)}")
     s.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
-                   help="the SLAM's everyday error under the drift: none, or LiDAR-odometry-like (random walk with "
-                        "distance and turning, jitter, corridor slide)")
+                   help="the SLAM's everyday error under the drift: none, or LiDAR-odometry-like (drift rates per "
+                        "metre that wander, a share of each turn, jitter, corridor slide)")
     s.add_argument("--clock-jump", type=_floats, default=(), metavar="AT,OFFSET,DURATION",
                    help="cloud stamps jump by OFFSET s from AT s after the start for DURATION s (a clock fault)")
     s.add_argument("--no-distortion", action="store_true",
-                   help="instantaneous sweeps (default: every firing at its own time along the trajectory)")
+                   help="instantaneous sweeps (without it: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")
     s.add_argument("--train", type=int, default=2, help="train trajectories per scene with --split")
     s.add_argument("--test", type=int, default=1, help="test trajectories per scene with --split")
@@ -315,17 +344,17 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/train)")
     t.add_argument("--val", nargs="*", default=[], help="validation bags (logged per epoch, never used to pick weights)")
     t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
-    t.add_argument("--epochs", type=int, default=12)
+    t.add_argument("--epochs", type=int, default=12, help="passes over the crops")
     t.add_argument("--crops", type=int, default=768, help="random azimuth crops per epoch")
-    t.add_argument("--batch", type=int, default=12)
+    t.add_argument("--batch", type=int, default=12, help="crops per optimiser step")
     t.add_argument("--crop-width", type=int, default=480, help="azimuth columns per crop")
-    t.add_argument("--lr", type=float, default=4e-3)
+    t.add_argument("--lr", type=float, default=4e-3, help="learning rate")
     t.add_argument("--every", type=int, default=3, help="use every n-th scan of each bag")
     t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
     t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
     t.add_argument("--max-minutes", type=float, default=0.0,
                    help="stop training after this many minutes (0 = run all epochs); keeps the best-val epoch")
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0, help="crop and initialisation seed")
     t.add_argument("--init", default="", help="start from these weights (fine-tuning; their network replaces "
                                               "--widths/--context; recorded in the model card)")
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -334,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
     e.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/test)")
-    e.add_argument("--weights", default="", help="weights file (default: the shipped ones)")
+    e.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
     e.add_argument("--mode", default="network", choices=("network", "labels"),
                    help="network, or labels (score the cloud's own label field: a sanity check)")
     e.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -342,19 +371,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--every", type=int, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")
-    e.add_argument("--out", default="out/eval_seg")
+    e.add_argument("--out", default="out/eval_seg", help="output folder")
     e.set_defaults(func=cmd_eval_seg)
 
     r = sub.add_parser("replay",
                        help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
     r.add_argument("--out", required=True, help="output folder")
-    r.add_argument("--rate", default="max", help="max (default, every window processed), realtime, or a speed factor")
-    r.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one, else /points)")
-    r.add_argument("--odom-topic", default="", help="nav_msgs/Odometry topic of the SLAM estimate (default: the "
+    r.add_argument("--rate", default="max", help="max (every window processed), realtime, or a speed factor")
+    r.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one, else /points)")
+    r.add_argument("--odom-topic", default="", help="nav_msgs/Odometry topic of the SLAM estimate (\"\": the "
                                                     "bag's only one besides --gt-topic, else /odom)")
     r.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
-    r.add_argument("--no-plot", action="store_true")
+    r.add_argument("--no-plot", action="store_true", help="no metrics.png")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
@@ -363,61 +392,63 @@ def build_parser() -> argparse.ArgumentParser:
                                        "segmentation, planes; a PNG per scan and scans.csv")
     i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
     i.add_argument("--out", default="out/inspect", help="output folder")
-    i.add_argument("--points-topic", default="", help="PointCloud2 topic (default: the bag's only one)")
+    i.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one)")
     i.add_argument("--every", type=int, default=1, help="every n-th cloud")
     i.add_argument("--limit", type=int, default=10, help="at most this many clouds")
-    i.add_argument("--no-plot", action="store_true")
+    i.add_argument("--no-plot", action="store_true", help="no scan_<k>.png")
     _add_monitor_args(i)
     i.set_defaults(func=cmd_inspect)
 
     a = sub.add_parser("alarms", help="drift-alarm detection table on held-out simulated bags (r/t/rt x 1/1.5/2)")
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
-    a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"])
-    a.add_argument("--frames", type=int, default=400, help="scans per drift bag (default 400 = 80 s)")
-    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags per group of the split (default 5)")
+    a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"],
+                   help="scenes (comma list)")
+    a.add_argument("--frames", type=int, default=400, help="scans per drift bag (400 = 80 s)")
+    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags per group of the split (0 = 5)")
     a.add_argument("--split", choices=("evaluation", "calibration"), default="evaluation",
                    help="bag set of the table (thresholds are calibrated on 'calibration' only)")
     a.add_argument("--calibrate", action="store_true",
                    help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
-    a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed (0.5)")
+    a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed")
     a.add_argument("--margin", type=float, default=0.25,
-                   help="calibration: the target must also hold this many sigma below the chosen one (0.25)")
-    a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (default 750 = 150 s)")
+                   help="calibration: the target must also hold this many sigma below the chosen one")
+    a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (750 = 150 s)")
     a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
-    a.add_argument("--quiet", action="store_true")
+    a.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_monitor_args(a, "labels")
     a.set_defaults(func=cmd_alarms)
 
     d = sub.add_parser("demo", help="simulate a garage bag with a drift episode, replay it, print the alarms")
-    d.add_argument("--out", default="out/demo")
-    d.add_argument("--frames", type=int, default=150)
+    d.add_argument("--out", default="out/demo", help="output folder: the bag and the replay's reports")
+    d.add_argument("--frames", type=int, default=150, help="scans in the demo bag (5 per second)")
     _add_monitor_args(d, "labels")
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("evaluate", help="the paper's noise experiment: every metric against RPE, correlations, timing")
-    e.add_argument("--scenes", type=_scenes, default=None, help="scenes (default floor2,garage)")
-    e.add_argument("--win", type=_ints, default=None, help="window sizes (default 5,10,15)")
-    e.add_argument("--noise", type=_words, default=None, help="noise modes among r,t,rt (default all)")
-    e.add_argument("--scales", type=_floats, default=None, help="noise scales (default 1,1.5,2)")
+    e.add_argument("--scenes", type=_scenes, default=None, help="scenes (default: floor2,garage)")
+    e.add_argument("--win", type=_ints, default=None, help="window sizes (default: 5,10,15)")
+    e.add_argument("--noise", type=_words, default=None, help="noise modes among r,t,rt (default: all)")
+    e.add_argument("--scales", type=_floats, default=None, help="noise scales (default: 1,1.5,2)")
     e.add_argument("--labels", type=_words, default=None,
-                   help="label sources: network (shipped segmentation) and/or gt (default network,gt)")
-    e.add_argument("--trajectories", type=int, default=None, help="trajectories per scene (default 2)")
-    e.add_argument("--frames", type=int, default=None, help="scans per trajectory (default 300)")
+                   help="label sources: network (shipped segmentation) and/or gt (default: network,gt)")
+    e.add_argument("--trajectories", type=int, default=None, help="trajectories per scene (default: 2)")
+    e.add_argument("--frames", type=int, default=None, help="scans per trajectory (default: 300)")
     e.add_argument("--baseline-windows", type=int, default=None,
-                   help="windows per trajectory and setting that also get MME/MPV/MOM (default 8)")
-    e.add_argument("--workers", type=int, default=2, help="processes (default 2)")
+                   help="windows per trajectory and setting that also get MME/MPV/MOM (default: 8)")
+    e.add_argument("--workers", type=int, default=2, help="processes")
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
-    e.add_argument("--out", default="results", help="output directory (default results/); finished settings are reused")
+    e.add_argument("--out", default="results", help="output directory; finished settings are reused")
     e.set_defaults(func=cmd_evaluate)
 
     q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")
-    q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"])
-    q.add_argument("--frames", type=int, default=20, help="scans per scene (default 20)")
-    q.add_argument("--detector", default="ring", choices=("ring", "open3d"))
+    q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"],
+                   help="scenes (comma list)")
+    q.add_argument("--frames", type=int, default=20, help="scans per scene")
+    q.add_argument("--detector", default="ring", choices=("ring", "open3d"), help="plane detector")
     q.add_argument("--seed", type=_seeds, default=[0],
-                   help="trajectory/noise seeds: 0 | 0,3,5 | 0-6 (default 0); recall is pooled over them")
+                   help="trajectory/noise seeds: 0 | 0,3,5 | 0-6; recall is pooled over them")
     q.add_argument("--config", default=None, help="YAML config (planes section is used)")
-    q.add_argument("--out", default="out/planes")
+    q.add_argument("--out", default="out/planes", help="output folder")
     q.set_defaults(func=cmd_plane_quality)
     return p
 

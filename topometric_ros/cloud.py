@@ -101,14 +101,16 @@ def _read_cloud(msg: Any) -> dict[str, np.ndarray]:
 
 
 def xyz(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) float32 points (sensor frame) and the (M,) bool mask of finite points they were taken by.
-    CloudError when x, y or z is not one number per point."""
+    """(N, 3) float32 points (sensor frame) and the (M,) bool mask of finite points they were taken by (finite
+    as float32: a float64 beyond its range counts as not finite). CloudError when x, y or z is not one number
+    per point."""
     bad = [n for n in "xyz" if fields[n].ndim != 1]
     if bad:
         raise CloudError(f"field(s) {'/'.join(bad)} must have count 1, got shape(s) {[fields[n].shape for n in bad]}")
-    pts = np.stack([fields["x"], fields["y"], fields["z"]], axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        pts = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)
     finite = np.isfinite(pts).all(axis=1)
-    return pts[finite].astype(np.float32, copy=False), finite
+    return pts[finite], finite
 
 
 @dataclass
@@ -144,12 +146,35 @@ MAX_SWEEP_S = 1.0  # s, per-point times spanning more than this are not one swee
 
 def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
     """A PointCloud2 of any layout -> CloudScan (possibly with no points left). ``max_beams`` > 0: beam ids at
-    or above it are bad (a named sensor's beam count; else grid.MAX_BEAMS). CloudError for a malformed cloud."""
+    or above it (or below 0) are bad (a named sensor's beam count; else grid.MAX_BEAMS). CloudError for a
+    malformed cloud (its layout, data or header), and no other exception."""
+    try:
+        with np.errstate(all="ignore"):  # signalling NaNs and out-of-range casts in garbage data: handled below
+            return _read_scan(msg, max_beams)
+    except CloudError:
+        raise
+    except Exception as e:  # noqa: BLE001 - whatever a malformed message does, it is a CloudError
+        raise CloudError(f"malformed PointCloud2: {type(e).__name__}: {e}") from None
+
+
+def _header(msg: Any) -> tuple[float, str]:
+    """(stamp s, frame_id) of the header; CloudError for a stamp that is not a finite number."""
+    try:
+        stamp = stamp_seconds(msg.header)
+    except (AttributeError, TypeError, ValueError, OverflowError) as e:
+        raise CloudError(f"bad header stamp: {type(e).__name__}: {e}") from None
+    if not np.isfinite(stamp):
+        raise CloudError(f"header stamp {stamp} is not finite")
+    frame_id = getattr(msg.header, "frame_id", "")
+    return stamp, frame_id if isinstance(frame_id, str) else ""
+
+
+def _read_scan(msg: Any, max_beams: int) -> CloudScan:
     from .grid import MAX_BEAMS
     from .sensors import layout_of
 
     fields = read_cloud(msg)
-    stamp = stamp_seconds(msg.header)
+    stamp, frame_id = _header(msg)
     pts, keep = xyz(fields)
     dropped = {"nonfinite": int(len(keep) - len(pts))}  # NaN: ouster-ros' and velodyne's "no return"
     zero = ~pts.any(axis=1)  # (0, 0, 0): hesai's and livox's "no return"
@@ -162,7 +187,7 @@ def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
     columns = max(height, width) if height > 1 and width > 1 else 0  # an organised cloud: firings x beams or v.v.
     if beam is not None:
         beam = beam[keep]
-        bad = beam >= (max_beams or MAX_BEAMS)
+        bad = (beam < 0) | (beam >= (max_beams or MAX_BEAMS))
         if bad.any():
             dropped["bad_beam"] = int(bad.sum())
             keep[np.flatnonzero(keep)[bad]] = False
@@ -170,11 +195,28 @@ def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
     time, note = _times(fields, stamp, keep)
     if note:
         notes.append(note)
-    per_point = {name: fields[key][keep].astype(dtype, copy=False) if key in fields and fields[key].ndim == 1
-                 else None for name, key, dtype in (("intensity", "intensity", np.float32), ("labels", "label", np.uint8))}
+    value = fields.get("intensity")
+    intensity = value[keep].astype(np.float32) if value is not None and value.ndim == 1 else None
+    labels, note = _labels(fields, keep)
+    if note:
+        notes.append(note)
     layout = layout_of(fields)
-    return CloudScan(stamp, str(getattr(msg.header, "frame_id", "")), pts, beam, columns, time,
-                     per_point["intensity"], per_point["labels"], dropped, notes, layout.name if layout else "")
+    return CloudScan(stamp, frame_id, pts, beam, columns, time, intensity, labels, dropped, notes,
+                     layout.name if layout else "")
+
+
+def _labels(fields: Mapping[str, np.ndarray], keep: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """(N,) uint8 class per kept point from an integer ``label`` field of count 1 with values in 0..255, and
+    a note when a label field is there but not usable."""
+    label = fields.get("label")
+    if label is None:
+        return None, ""
+    if label.ndim != 1 or label.dtype.kind not in "iu":
+        return None, f"label field of type {label.dtype} x {label.shape[1:] or 1}: not used"
+    kept = label[keep]
+    if len(kept) and (kept.min() < 0 or kept.max() > 255):
+        return None, "label field holds values outside 0..255: not used"
+    return kept.astype(np.uint8), ""
 
 
 def _beams(fields: Mapping[str, np.ndarray], height: int, width: int) -> np.ndarray | None:

@@ -24,6 +24,7 @@ import numpy as np
 
 GRID_ALIGN = 8  # width multiple (the network folds 4 columns and halves them once)
 MAX_BEAMS = 256  # beam ids at or above this are bad (no LiDAR has more beams)
+MAX_COLUMNS = 4096  # firings per revolution an unnamed sensor's grid may have (2x the finest model; garbage beyond)
 NON_REPETITIVE_ROWS = 32  # elevation bins of a non-repetitive scan
 BEAM_GAP_DEG = 0.06  # deg, an empty elevation gap this wide between far points separates two beams
 CLUSTER_MIN_RANGE = 2.0  # m, points nearer than this do not place beams (beam-origin offsets blur them)
@@ -96,7 +97,8 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
-    width = aligned(model.columns if model is not None else columns or _estimate_width(pts, row, height))
+    width = aligned(model.columns if model is not None
+                    else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
     return ScanGrid(row.astype(np.int32), azimuth_columns(pts, width), int(height), width,
                     _row_elevations(row, el, height), source)
 
@@ -111,8 +113,9 @@ def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarra
     when they fall (Ouster), else ranked by each id's median elevation."""
     height = model.beams if model is not None else int(beam.max()) + 1
     sub = slice(None, None, SAMPLE)
-    ids = np.unique(beam[sub])
-    med = _medians(beam[sub], el[sub], ids)
+    ids = np.unique(beam)
+    sampled = len(np.unique(beam[sub])) == len(ids)  # a sparse cloud can hide a beam from the sample
+    med = _medians(beam[sub], el[sub], ids) if sampled else _medians(beam, el, ids)
     steps = np.diff(med)
     if len(steps) == 0 or np.all(steps > 0):
         return beam, height, "ring field"

@@ -2,7 +2,8 @@
 
 Outputs in the output folder: ``diagnostics.mcap`` (diagnostic_msgs/DiagnosticArray on /diagnostics,
 stamped in bag time; opens in Foxglove and ``ros2 bag``), ``windows.csv`` and ``windows.json`` (every
-window's metrics, timings, level, reason; the JSON also holds the summary and counters) and
+window's metrics, timings, level, reason, floats at full precision; the JSON is strict, null where a metric is
+NaN, and also holds the summary and counters; :func:`load_windows` reads it back with NaN) and
 ``metrics.png`` (PNE, CPV, drift rates and the RPE estimate over time with alarm bands; the true RPE
 when the bag has ground truth).
 
@@ -23,11 +24,11 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from . import bag, geometry
-from .config import Config
+from . import bag, geometry, storage
+from .config import Config, flatten
 from .health import RATES, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
-from .reports import write_csv
+from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 RECORD_FORMAT = 4  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed, turn rate and per-window rate limits
@@ -70,50 +71,12 @@ def _speed(rate: str) -> float | None:
     return value
 
 
-# ------------------------------------------------------------------ reading (with a fallback for broken bags)
-def _mcap_files(path: Path) -> list[Path]:
-    return [path] if path.is_file() else sorted(path.glob("*.mcap"))
-
-
-def stream_mcap(path: Path, wanted: set[str]) -> Iterator[tuple[str, int, Any]]:
-    """Messages of an MCAP file read front to back without its index (works on truncated files up to the
-    break, where the reader's error propagates)."""
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-
-    store = bag.typestore()
-    schemas, channels = {}, {}
-    with open(path, "rb") as f:
-        for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
-            if isinstance(rec, Schema):
-                schemas[rec.id] = rec.name
-            elif isinstance(rec, Channel):
-                channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
-            elif isinstance(rec, Message) and rec.channel_id in channels:
-                topic, msgtype = channels[rec.channel_id]
-                if topic in wanted:
-                    yield topic, rec.log_time, store.deserialize_cdr(rec.data, msgtype)
-
-
-def read_bag(path: str | Path, wanted: set[str], notes: list[str]) -> Iterator[tuple[str, int, Any]]:
-    """(topic, receive ns, message) of the wanted topics present. A bag whose index cannot be opened
-    (truncated MCAP) is streamed record by record instead, with a note."""
-    path = Path(path)
-    if not path.exists():
-        raise bag.BagError(f"bag not found: {path}")
-    if path.is_dir():
-        try:
-            have = set(bag.topics(path))
-        except Exception as e:  # noqa: BLE001 - rosbags raises several types for a broken index
-            files = _mcap_files(path)
-            if not files:
-                raise
-            notes.append(f"bag index unreadable ({e}); streaming {files[0].name} record by record")
-            yield from stream_mcap(files[0], wanted)
-            return
-        yield from bag.read_messages(path, sorted(wanted & have))
-    else:
-        yield from stream_mcap(path, wanted)
+# ------------------------------------------------------------------ reading (damaged bags too)
+def read_bag(path: str | Path, wanted: set[str], log: storage.ReadLog) -> Iterator[tuple[str, int, Any]]:
+    """(topic, receive ns, message) of the wanted topics the bag has (others are left out), in time order.
+    A damaged bag (a zeroed chunk, a truncated file, no metadata.yaml) gives every message it still holds;
+    ``log`` says what was skipped."""
+    yield from bag.read_messages(path, sorted(wanted), log=log, strict=False)
 
 
 # ------------------------------------------------------------------ replay
@@ -186,7 +149,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
            options: ReplayOptions | None = None, scan_fn: Callable | None = None,
            window_fn: Callable | None = None, segmenter: Any = None) -> ReplayResult:
     """Stream the bag through a Monitor and write the reports to ``out``. Never raises for a broken bag:
-    the error is in ``summary['error']`` and everything processed before it is written."""
+    a damaged bag gives every scan it still holds (``summary['notes']`` and ``summary['bag_read']`` say what
+    was skipped), an error is in ``summary['error']`` and everything processed before it is written; when no
+    scan was processed ``summary['no_scans']`` says why."""
     config = config or Config()
     opt = options or ReplayOptions()
     speed = _speed(opt.rate)
@@ -202,67 +167,131 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     # ahead), so reading and parsing overlap the per-scan work; real time: a live monitor that drops
     monitor = Monitor(config, scan_fn, window_fn, segmenter, live=True, block=speed is None, on_window=rec.window)
     ref.append(monitor)
-    gt_stamps, gt_poses, notes = [], [], []
-    error, n_scans, first, last = "", 0, None, None
+    notes: list[str] = []
     source = [bag_path, *opt.beside] if opt.beside else bag_path
-    opt, total = _resolve_topics(source, opt, notes)
-    wall0, cpu0 = time.perf_counter(), time.thread_time()
-    stale_reported = False
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, desc="replay", unit="scan", disable=not opt.progress, leave=False)
+    opt, topics = _resolve_topics(source, opt, notes)
+    feed = _Feed(monitor, rec, opt, speed)
+    log, wall0 = storage.ReadLog(), time.perf_counter()
+    wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
+    messages = (bag.read_messages(source, sorted(wanted & set(topics)), log) if opt.beside
+                else read_bag(bag_path, wanted, log))
     try:
-        wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
-        messages = bag.read_messages(source, sorted(wanted & set(bag.topics(source)))) if opt.beside \
-            else read_bag(bag_path, wanted, notes)
-        for topic, t_ns, msg in messages:
-            t = t_ns * 1e-9
-            first = t if first is None else first
-            last = t
-            if speed is not None:
-                time.sleep(max(0.0, wall0 + (t - first) / speed - time.perf_counter()))
-            if monitor.last_scan_received is not None:
-                stale = monitor.stale(t)
-                if stale and not stale_reported:
-                    rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
-                stale_reported = bool(stale)
-            faults = len(monitor.clock_events)
-            if topic == opt.points_topic:
-                monitor.add_cloud(msg, received=t)
-                n_scans += 1
-                bar.update()
-            elif topic == opt.odom_topic:
-                monitor.add_odometry(msg, received=t)
-            elif topic == opt.gt_topic:
-                try:
-                    s, pose = bag.odometry_pose(msg)
-                    gt_stamps.append(s)
-                    gt_poses.append(pose)
-                except ValueError:
-                    pass
-            elif topic == opt.tf_static_topic:
-                monitor.add_tf_static(msg)
-            if len(monitor.clock_events) > faults:
-                rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
-    except Exception as e:  # noqa: BLE001 - a broken bag is reported, the work done so far is kept
-        error = f"{type(e).__name__}: {e}"
+        feed.run(messages, topics.get(opt.points_topic, (None, None))[1])
     finally:
-        bar.close()
-        reader_cpu = time.thread_time() - cpu0
         monitor.flush()
         monitor.close()
         rec.close(out / "diagnostics.mcap")
-    wall = time.perf_counter() - wall0
+    feed.wall_s = time.perf_counter() - wall0  # reading and processing, up to the last window
     records = rec.records
-    if gt_stamps:
-        _add_rpe(records, rec.poses, np.asarray(gt_stamps), np.stack(gt_poses), monitor.extrinsic)
-    summary = _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed)
+    if feed.gt_stamps:
+        _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses), monitor.extrinsic)
+    summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
+    summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
+                   segmentation=config.segmentation.mode, sensor=config.sensor.model or "read off each cloud",
+                   layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
+    summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
     summary["clock_faults"] = rec.clock_faults
-    per_scan = 1000 / max(1, summary["scans_processed"])
-    summary["cpu_ms_per_scan"] = {"reader": round(reader_cpu * per_scan, 2),  # reading + decoding (this thread)
-                                  **{f"stage{i}": round(c * per_scan, 2) for i, c in enumerate(monitor.stage_cpu_s)}}
     write_reports(out, records, summary, truth=_truth(bag_path), plot=opt.plot)
     return ReplayResult(out, records, summary)
+
+
+class _Feed:
+    """The reading loop of a replay: messages to the monitor (paced at ``speed``, None = as fast as the
+    monitor takes them), STALE statuses in bag time, ground truth kept for RPE, reading CPU time."""
+
+    def __init__(self, monitor: Monitor, rec: "_Recorder", opt: ReplayOptions, speed: float | None):
+        self.monitor, self.rec, self.opt, self.speed = monitor, rec, opt, speed
+        self.gt_stamps: list[float] = []
+        self.gt_poses: list[np.ndarray] = []
+        self.n_scans, self.first, self.last = 0, None, None
+        self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
+        self._stale = False
+
+    def run(self, messages: Iterator[tuple[str, int, Any]], total: int | None) -> None:
+        """Feed every message; an exception of the reader ends the loop and is kept in ``error``."""
+        from tqdm import tqdm
+
+        wall0, cpu0 = time.perf_counter(), time.thread_time()
+        bar = tqdm(total=total, desc="replay", unit="scan", disable=not self.opt.progress, leave=False)
+        try:
+            for topic, t_ns, msg in messages:
+                self._message(topic, t_ns * 1e-9, msg, wall0)
+                bar.update(topic == self.opt.points_topic)
+        except Exception as e:  # noqa: BLE001 - a broken bag is reported, the work done so far is kept
+            self.error = f"{type(e).__name__}: {e}"
+        finally:
+            bar.close()
+            self.reader_cpu_s = time.thread_time() - cpu0
+
+    def _message(self, topic: str, t: float, msg: Any, wall0: float) -> None:
+        opt, monitor = self.opt, self.monitor
+        self.first = t if self.first is None else self.first
+        self.last = t
+        if self.speed is not None:
+            time.sleep(max(0.0, wall0 + (t - self.first) / self.speed - time.perf_counter()))
+        if monitor.last_scan_received is not None:
+            stale = monitor.stale(t)
+            if stale and not self._stale:
+                self.rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
+            self._stale = bool(stale)
+        faults = len(monitor.clock_events)
+        self._dispatch(topic, t, msg)
+        if len(monitor.clock_events) > faults:
+            self.rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
+
+    def _dispatch(self, topic: str, t: float, msg: Any) -> None:
+        opt, monitor = self.opt, self.monitor
+        if topic == opt.points_topic:
+            monitor.add_cloud(msg, received=t)
+            self.n_scans += 1
+        elif topic == opt.odom_topic:
+            monitor.add_odometry(msg, received=t)
+        elif topic == opt.gt_topic:
+            try:
+                s, pose = bag.odometry_pose(msg)
+                self.gt_stamps.append(s)
+                self.gt_poses.append(pose)
+            except (ValueError, AttributeError, TypeError):
+                pass
+        elif topic == opt.tf_static_topic:
+            monitor.add_tf_static(msg)
+
+
+def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Config) -> str:
+    """Why a replay processed no scan, from the bag's topics, the reading and the monitor's counters."""
+    c, points, odom = summary["counters"], summary["points_topic"], summary["odom_topic"]
+    clouds = _of_type(topics, bag.POINTCLOUD2)
+    if not clouds:
+        return "the bag has no sensor_msgs/msg/PointCloud2 topic"
+    if points not in topics:
+        return (f"PointCloud2 topic {points} is not in the bag (its PointCloud2 topics: {', '.join(clouds)}); "
+                "name one with --points-topic")
+    if topics[points][0] != bag.POINTCLOUD2:
+        return f"topic {points} holds {topics[points][0]}, not sensor_msgs/msg/PointCloud2"
+    if summary["scans_read"] == 0:
+        return f"no message of {points} could be read" + (f" ({summary['error']})" if summary["error"] else "")
+    if c["dropped_bad_scan"] >= summary["scans_read"]:
+        return (f"every cloud of {points} ({summary['scans_read']}) was malformed or empty; "
+                f"last: {summary['last_monitor_error']}")
+    if c["poses_in"] == 0:
+        odoms = _of_type(topics, bag.ODOMETRY)
+        where = (f"{odom} is not in the bag" if odom not in topics else f"no message of {odom} could be read")
+        return (f"no odometry: {where} (its Odometry topics: {', '.join(odoms) or 'none'}); the monitor needs the "
+                "SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic")
+    if c["bad_poses"] >= c["poses_in"]:
+        return f"every odometry message of {odom} was invalid; last: {summary['last_monitor_error']}"
+    if c["scan_errors"]:
+        hint = ("; mode 'labels' reads the cloud's own label field (simulated bags): use --segmentation network "
+                "(or none) for a real sensor's bag") if config.segmentation.mode == "labels" else ""
+        return f"every scan failed in processing; last: {summary['last_monitor_error']}{hint}"
+    if c["dropped_no_pose"]:
+        return (f"no cloud had odometry within window.max_pose_gap_s = {config.window.max_pose_gap_s} s of its "
+                f"stamp (clouds and odometry on different clocks?); last: {summary['last_monitor_error']}")
+    return f"no scan was processed; last monitor error: {summary['last_monitor_error'] or 'none'}"
+
+
+def _of_type(topics: dict[str, tuple[str, int]], msgtype: str) -> list[str]:
+    return sorted(t for t, (kind, _) in topics.items() if kind == msgtype)
 
 
 def load_segmenter(config: Config):
@@ -275,19 +304,20 @@ def load_segmenter(config: Config):
         raise ValueError(f"{e}") from None
 
 
-def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayOptions, int | None]:
+def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayOptions, dict]:
     """The options with the points and odometry topics found in the bag (bag.pick_topic; notes say when a
-    topic was picked) and the number of clouds (None when the bag's index cannot be read)."""
+    topic was picked) and the bag's topics {topic: (type, count)} ({} when they cannot be listed)."""
     from dataclasses import replace as with_
 
     try:
         topics = bag.topics(path)
-    except Exception:  # noqa: BLE001 - a broken index: stream with the given (or default) names
-        return with_(opt, points_topic=opt.points_topic or "/points", odom_topic=opt.odom_topic or "/odom"), None
+    except Exception as e:  # noqa: BLE001 - unlistable: stream with the given (or default) names
+        notes.append(f"topics unreadable ({type(e).__name__}: {e})")
+        return with_(opt, points_topic=opt.points_topic or "/points", odom_topic=opt.odom_topic or "/odom"), {}
     points, note_p = bag.pick_topic(topics, bag.POINTCLOUD2, opt.points_topic, "/points")
     odom, note_o = bag.pick_topic(topics, bag.ODOMETRY, opt.odom_topic, "/odom", exclude=[opt.gt_topic])
     notes += [n for n in (note_p, note_o) if n]
-    return with_(opt, points_topic=points, odom_topic=odom), topics.get(points, (None, None))[1]
+    return with_(opt, points_topic=points, odom_topic=odom), topics
 
 
 def _truth(path) -> dict | None:
@@ -307,20 +337,23 @@ def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
                       if valid.all() and len(stamps) > 1 else float("nan"))
 
 
-def _summary(bag_path, monitor, records, n_scans, wall, first, last, error, notes, speed) -> dict:
+def _summary(bag_path, monitor: Monitor, records: list[dict], feed: _Feed, notes: list[str], speed) -> dict:
     levels = [r["level"] for r in records]
-    bag_s = (last - first) if first is not None else 0.0
-    c = monitor.counters
+    bag_s = (feed.last - feed.first) if feed.first is not None else 0.0
+    c, wall = monitor.counters, feed.wall_s
+    per_scan = 1000 / max(1, c["scans_processed"])
     return {
         "bag": str(bag_path), "record_format": RECORD_FORMAT,
         "mode": "deterministic" if speed is None else f"live x{speed:g}",
         "windows": len(records), "levels": {k: levels.count(k) for k in ("OK", "WARN", "ERROR")},
-        "scans_read": n_scans, "scans_processed": c["scans_processed"], "wall_s": round(wall, 3),
+        "scans_read": feed.n_scans, "scans_processed": c["scans_processed"], "wall_s": round(wall, 3),
         "bag_s": round(bag_s, 3), "scans_per_s": round(c["scans_processed"] / wall, 2) if wall > 0 else None,
         "x_realtime": round(bag_s / wall, 2) if wall > 0 else None,
-        "extrinsic_source": monitor.extrinsic_source, "counters": c, "error": error, "notes": notes,
+        "extrinsic_source": monitor.extrinsic_source, "counters": c, "error": feed.error, "notes": notes,
         "last_monitor_error": monitor.last_error,
-        "config": __import__("topometric_ros.config", fromlist=["flatten"]).flatten(monitor.config),
+        "cpu_ms_per_scan": {"reader": round(feed.reader_cpu_s * per_scan, 2),  # reading + decoding (this thread)
+                            **{f"stage{i}": round(t * per_scan, 2) for i, t in enumerate(monitor.stage_cpu_s)}},
+        "config": flatten(monitor.config),
     }
 
 
@@ -331,70 +364,124 @@ def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | N
     keys: list[str] = []
     for r in records:
         keys += [k for k in r if k not in keys]
-    write_csv(out / "windows.csv", [{k: _csv(r.get(k, "")) for k in keys} for r in records])
-    (out / "windows.json").write_text(json.dumps({"summary": summary, "windows": records}, indent=1,
-                                                 default=_json))
+    write_csv(out / "windows.csv", [{k: csv_value(r.get(k, "")) for k in keys} for r in records])
+    write_json(out / "windows.json", {"summary": summary, "windows": records})
     if plot:
-        plot_metrics(records, out / "metrics.png", truth)
+        plot_metrics(records, out / "metrics.png", truth, summary)
 
 
-def _csv(v):
-    return f"{v:.6g}" if isinstance(v, float) else v
-
-
-def _json(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    raise TypeError(f"not JSON serialisable: {type(v)}")
+def load_windows(path: str | Path) -> dict:
+    """A windows.json as written ({'summary', 'windows'}), with the window records' nulls back as NaN (strict
+    JSON has no NaN: a metric that could not be computed is written as null)."""
+    doc = json.loads(Path(path).read_text())
+    doc["windows"] = [{k: float("nan") if v is None else v for k, v in r.items()} for r in doc.get("windows", [])]
+    return doc
 
 
 LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
+BASELINE_COLOUR = "#7fa7d0"
+#: (record key, axis label with its unit) of each row of metrics.png
+PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate", "rotation drift (°/s)"),
+             ("trans_rate", "translation drift (m/s)"),
+             ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)")]
 
 
-def plot_metrics(records: list[dict], path: Path, truth: dict | None = None) -> None:
-    """PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground truth) per
-    window over bag time, WARN/ERROR windows shaded, thresholds dashed, simulated drift episodes (truth.json)
-    hatched."""
+def plot_metrics(records: list[dict], path: Path, truth: dict | None = None, summary: dict | None = None) -> None:
+    """metrics.png: PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground
+    truth) per window over bag time; WARN/ERROR windows shaded, their limits dashed, simulated drift episodes
+    (truth.json) hatched, the baseline-learning windows (health.baseline_windows, from the summary's config)
+    shaded and labelled; bag, segmentation mode and sensor in the title; one legend, outside the plots."""
+    from .reports import pyplot
+
+    fig = metrics_figure(records, truth, summary)
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+
+
+def metrics_figure(records: list[dict], truth: dict | None = None, summary: dict | None = None):
+    """The matplotlib figure of :func:`plot_metrics` (the caller closes it)."""
     from .reports import pyplot
 
     plt = pyplot()
-
-    rows = [("pne", "PNE (nats)"), ("cpv", "CPV (m²)"), ("rot_rate", "rotation drift (°/s)"),
-            ("trans_rate", "translation drift (m/s)"), ("rpe_estimate", "RPE estimate")]
-    has_rpe = any(np.isfinite(r.get("rpe", np.nan)) for r in records)
-    fig, axes = plt.subplots(len(rows), 1, figsize=(11, 2.6 * len(rows)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(PLOT_ROWS), 1, figsize=(13, 2.6 * len(PLOT_ROWS)), sharex=True, squeeze=False,
+                             layout="constrained")
     t0 = records[0]["start"] if records else 0.0
+    learning = _baseline_span(records, summary, t0)
+    for ax, (key, label) in zip(axes[:, 0], PLOT_ROWS):
+        _plot_row(ax, records, key, label, t0, truth, learning)
+    if learning is not None:
+        axes[0, 0].annotate(f"learning baseline\n(first {learning[2]} windows:\nno PNE/CPV limits yet)",
+                            xy=(0.5 * (learning[0] + learning[1]), 0.97), xycoords=("data", "axes fraction"),
+                            ha="center", va="top", fontsize=8, color="#2a4a70")
+    axes[-1, 0].set_xlabel("bag time since the first window's start (s); each point at its window's end")
+    fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right upper", fontsize=8,
+               title="per window", title_fontsize=8)
+    fig.suptitle(_plot_title(summary))
+    return fig
+
+
+def _plot_row(ax, records: list[dict], key: str, label: str, t0: float, truth: dict | None, learning) -> None:
+    """One metric over time with every band: level shading, baseline span, episodes, limits."""
     t = np.array([r["end"] - t0 for r in records])
-    for ax, (key, label) in zip(axes[:, 0], rows):
-        for r, nxt in zip(records, records[1:] + [None]):
-            if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
-                right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
-                ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
-        for ep in (truth or {}).get("episodes", []):
-            ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
-        ax.plot(t, [r.get(key, np.nan) for r in records], "k.-", lw=1, ms=3, label=label)
-        if key == "rpe_estimate" and has_rpe:
-            ax.plot(t, [r.get("rpe", np.nan) for r in records], ".-", color="#4a7ab0", lw=1, ms=3,
-                    label="RPE (ground truth)")
-            ax.legend(loc="upper left", fontsize=8)
-        if records and f"{key}_warn_at" in records[0]:
-            ax.plot(t, [r.get(f"{key}_warn_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["WARN"], lw=1)
-            ax.plot(t, [r.get(f"{key}_error_at", np.nan) for r in records], "--", color=LEVEL_COLOURS["ERROR"], lw=1)
-        if key == "cpv" and any(r.get("cpv", 0) > 0 for r in records):
-            ax.set_yscale("log")  # a variance: drift multiplies it
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("bag time of window end (s)")
+    for r, nxt in zip(records, records[1:] + [None]):
+        if r["level"] in LEVEL_COLOURS:  # the window's span, up to the next window's start (no gaps)
+            right = nxt["start"] if nxt is not None and nxt["start"] > r["end"] else r["end"]
+            ax.axvspan(r["start"] - t0, right - t0, color=LEVEL_COLOURS[r["level"]], alpha=0.35, lw=0)
+    if learning is not None:
+        ax.axvspan(learning[0], learning[1], color=BASELINE_COLOUR, alpha=0.18, lw=0)
+    for ep in (truth or {}).get("episodes", []):
+        ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
+    ax.plot(t, [_num(r.get(key)) for r in records], "k.-", lw=1, ms=3)
+    if key == "rpe_estimate":
+        ax.plot(t, [_num(r.get("rpe")) for r in records], ".-", color="#4a7ab0", lw=1, ms=3)
+    for level in ("warn", "error"):
+        ax.plot(t, [_num(r.get(f"{key}_{level}_at")) for r in records], "--", color=LEVEL_COLOURS[level.upper()], lw=1)
+    if key == "cpv" and any(_num(r.get("cpv")) > 0 for r in records):
+        ax.set_yscale("log")  # a variance: drift multiplies it
+    ax.set_ylabel(label, fontsize=9)
+    ax.grid(alpha=0.3)
+
+
+def _num(v) -> float:
+    """A record value as a float (None, from strict JSON, and missing values as NaN)."""
+    return float("nan") if v is None else float(v)
+
+
+def _baseline_span(records: list[dict], summary: dict | None, t0: float) -> tuple[float, float, int] | None:
+    """(start, end s from t0, windows) of the baseline-learning windows at the start of the run."""
+    n = int(((summary or {}).get("config") or {}).get("health.baseline_windows", 0) or 0)
+    if not records or n <= 0:
+        return None
+    last = records[min(n, len(records)) - 1]
+    return records[0]["start"] - t0, last["end"] - t0, min(n, len(records))
+
+
+def _legend_handles(records: list[dict], truth: dict | None, learning) -> list:
+    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    handles = [Patch(color=c, alpha=0.35, label=k) for k, c in LEVEL_COLOURS.items()]
+    handles = [Line2D([], [], color="k", marker=".", lw=1, label="metric (monitor)")]
+    if any(np.isfinite(_num(r.get("rpe"))) for r in records):
+        handles.append(Line2D([], [], color="#4a7ab0", marker=".", lw=1, label="RPE from ground truth"))
+    handles += [Line2D([], [], color=LEVEL_COLOURS["WARN"], ls="--", lw=1, label="WARN limit"),
+                Line2D([], [], color=LEVEL_COLOURS["ERROR"], ls="--", lw=1, label="ERROR limit"),
+                Patch(color=LEVEL_COLOURS["WARN"], alpha=0.35, label="WARN window"),
+                Patch(color=LEVEL_COLOURS["ERROR"], alpha=0.35, label="ERROR window")]
+    if learning is not None:
+        handles.append(Patch(color=BASELINE_COLOUR, alpha=0.18, label=f"learning baseline ({learning[2]} windows)"))
     if truth and truth.get("episodes"):
         handles.append(Patch(facecolor="none", edgecolor="grey", hatch="//", label="drift episode (truth)"))
-    axes[0, 0].legend(handles=handles, loc="upper right", fontsize=8)
-    fig.suptitle("topometric: map consistency per window")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return handles
+
+
+def _plot_title(summary: dict | None) -> str:
+    """'topometric: map consistency per window — <bag>' and a line with segmentation, sensor and window."""
+    s = summary or {}
+    bag_name = Path(s.get("bag", "")).name or "?"
+    size = (s.get("config") or {}).get("window.size", "?")
+    return (f"topometric: map consistency per window — bag {bag_name}\n"
+            f"segmentation {s.get('segmentation', '?')}, sensor {s.get('sensor', '?')}"
+            f"{', ' + s['layout'] + ' layout' if s.get('layout') else ''}, {size} scans per window")
 
 
 def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
@@ -422,12 +509,31 @@ def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
               f"speed          {s['scans_per_s']} scans/s, {s['x_realtime']}x real time ({s['mode']}, "
               f"{s['wall_s']:.1f} s wall for {s['bag_s']:.1f} s of bag)",
               f"extrinsic      from {s['extrinsic_source']}"]
+    lines += _run_lines(s)
+    return "\n".join(lines)
+
+
+SEGMENTATION_TEXT = {"network": "network (the shipped weights unless segmentation.weights names others)",
+                     "labels": "labels (the clouds' own label field)", "none": "none (every point counts as static)"}
+
+
+def _run_lines(s: dict) -> list[str]:
+    """What ran and what went wrong: segmentation mode, sensor, topics, notes, error, why no scan."""
+    if "segmentation" not in s:  # a summary of an older record format
+        return [f"notes          {n}" for n in s.get("notes", [])]
+    layout = f", {s['layout']} driver layout" if s.get("layout") else ""
+    lines = [f"segmentation   {SEGMENTATION_TEXT.get(s['segmentation'], s['segmentation'])}",
+             f"sensor         {s['sensor']}{layout}",
+             f"topics         clouds {s['points_topic']}, odometry {s['odom_topic']}"]
+    lines += [f"note           {n}" for n in s["notes"]]
     if s.get("clock_faults"):
         first = s["clock_faults"][0]
-        lines.append(f"clock faults   {len(s['clock_faults'])} message(s) on another clock, first at "
-                     f"{first['received'] - t0:.1f} s: {first['message']} (reported as 'clock', not as drift)")
-    if s["notes"]:
-        lines.append("notes          " + "; ".join(s["notes"]))
+        lines.append(f"clock faults   {len(s['clock_faults'])} message(s) on another clock, first at bag time "
+                     f"{first['received']!r} s: {first['message']} (reported as 'clock', not as drift)")
     if s["error"]:
         lines.append(f"ERROR          {s['error']} (reports hold what was processed before it)")
-    return "\n".join(lines)
+    if s.get("no_scans"):
+        lines.append(f"NO SCAN PROCESSED: {s['no_scans']}")
+        lines.append("the bag's topics (type, messages):")
+        lines += [f"  {t}  {kind}  {n}" for t, (kind, n) in sorted(s["topics"].items())] or ["  none could be listed"]
+    return lines

@@ -1,8 +1,13 @@
-"""What every report shares: matplotlib without a display, and CSV files written atomically."""
+"""What every report shares: matplotlib without a display, CSV and strict JSON files written atomically."""
 from __future__ import annotations
 
 import csv
+import json
+import math
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 def pyplot():
@@ -27,3 +32,37 @@ def write_csv(path: str | Path, rows: list[dict]) -> Path:
         w.writerows(rows)
     tmp.replace(path)
     return path
+
+
+def strict(obj: Any) -> Any:
+    """``obj`` as strict JSON values: non-finite floats as None (null: NaN and inf are not JSON, and jq and
+    most parsers reject them), numpy scalars and arrays as Python numbers and lists, tuples as lists."""
+    if isinstance(obj, dict):
+        return {str(k): strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return strict(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def write_json(path: str | Path, obj: Any, indent: int = 1) -> Path:
+    """``obj`` as strict JSON (see :func:`strict`; floats at full precision) at path, written atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(strict(obj), indent=indent, allow_nan=False))
+    tmp.replace(path)
+    return path
+
+
+def csv_value(v: Any) -> Any:
+    """A CSV cell: floats at full precision (the shortest text that reads back as the same float: stamps such
+    as 1700000000.2 stay exact), 'nan'/'inf' for non-finite ones; anything else as it is."""
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    return v.item() if isinstance(v, np.generic) else v

@@ -26,7 +26,8 @@ import numpy as np
 
 from ..config import Config, HealthConfig, flatten
 from ..health import RATES, Health
-from ..replay import RECORD_FORMAT, ReplayOptions, replay
+from ..replay import RECORD_FORMAT, ReplayOptions, load_windows, replay
+from ..reports import write_json
 from ..sim.drift import DriftSpec
 from ..bag import load_truth
 from ..sim.writer import SIM_VERSION, SimConfig, bag_identity, simulate
@@ -146,7 +147,7 @@ def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) ->
     target = out / "replays" / _name(sim)
     saved = target / "windows.json"
     if saved.exists():
-        doc = json.loads(saved.read_text())
+        doc = load_windows(saved)
         if (_same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path))
                 and doc["summary"].get("weights") == _weights_digest(config)):
             return reassess(doc["windows"], config.health), doc["summary"]
@@ -155,9 +156,9 @@ def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) ->
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
     res.summary["bag_truth"] = bag_identity(load_truth(path))
     res.summary["weights"] = _weights_digest(config)
-    doc = json.loads(saved.read_text())
+    doc = load_windows(saved)
     doc["summary"].update(bag_truth=res.summary["bag_truth"], weights=res.summary["weights"])
-    saved.write_text(json.dumps(doc, indent=1))
+    write_json(saved, doc)
     return res.windows, res.summary
 
 
