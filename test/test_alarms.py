@@ -13,15 +13,15 @@ from topometric_ros.pipeline import ProcessedScan, WindowResult
 
 def test_calibration_and_evaluation_bags_are_disjoint():
     scenes = ["garage", "office1"]
-    cal = plan_bags(scenes, 100, 5, 200, split="calibration")
-    ev = plan_bags(scenes, 100, 5, 200, split="evaluation")
+    cal = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="calibration")]
+    ev = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="evaluation")]
     assert len(cal) == len(SPLITS["calibration"]) * (9 + 5) and len(ev) == 9 + 5
     assert {(s.layout_seed, s.seed) for s in cal}.isdisjoint({(s.layout_seed, s.seed) for s in ev})
     assert {s.layout_seed for s in cal}.isdisjoint({s.layout_seed for s in ev})  # different floor plans too
     assert len({s.layout_seed for s in ev}) == 4 and len({s.layout_seed for s in cal}) == 6
     assert sorted({(s.drift.mode, s.drift.scale) for s in ev if s.drift.mode != "none"}) == sorted(
         (m, k) for m in ("r", "t", "rt") for k in (1.0, 1.5, 2.0))
-    default = plan_bags(scenes, 400, 5, 750, split="evaluation")  # `topometric alarms` defaults
+    default = [r.sim for r in plan_bags(scenes, 400, 5, 750, split="evaluation")]  # `topometric alarms` defaults
     free_min = sum(s.frames / s.rate for s in default if s.drift.mode == "none") / 60
     assert free_min >= 10  # the goal is a rate per 10 min: at least that much drift-free held-out data
     with pytest.raises(ValueError, match="split"):
@@ -86,14 +86,21 @@ def test_score_counts_false_warns_per_ten_minutes_and_detections():
     from topometric_ros.sim.writer import SimConfig
     from topometric_ros.sim.drift import DriftSpec
 
-    free = SimConfig(scene="garage", frames=10)
-    drift = SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0))
+    from topometric_ros.experiments.alarms import Run
+
+    free = Run(SimConfig(scene="garage", frames=10))
+    drift = Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0)))
     recs = records(["OK"] * 50 + ["WARN"] + ["OK"] * 49)
     eps = records(["OK", "OK", "ERROR", "OK"])
+    for r, rate in zip(eps, (0.1, 2.1, 1.9, 0.2)):  # 2 °/s injected: read 2.1 and 1.9 inside the episode
+        r.update(rot_rate=rate, trans_rate=0.0)
     table = score([(free, recs, {"bag_s": 300.0}, None),
-                   (drift, eps, {"bag_s": 4.0}, {"episodes": [{"start": 1.5, "end": 3.0}]})], within=2)
+                   (drift, eps, {"bag_s": 4.0}, {"episodes": [{"start": 0.9, "end": 3.0, "rot_rate": np.radians(2.0),
+                                                               "trans_rate": 0.0}]})], within=2)
     assert table["false_warns_per_10min"] == pytest.approx(2.0)  # 1 false WARN in 5 min
     assert table["detected"] == table["episodes"] == 1
+    (cell,) = table["cells"]
+    assert cell["rot_rate"] == pytest.approx(1.0) and np.isnan(cell["trans_rate"])  # the median of 1.05 and 0.95
 
 
 def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():

@@ -128,18 +128,22 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
-    from .experiments.alarms import calibrate, format_calibration, format_detection, run_detection
+    from .experiments.alarms import SCALES, calibrate, format_calibration, format_detection, run_detection
 
+    plan = {"rate": args.rate, "speeds": args.speeds, "estimates": args.estimates, "odometry": args.odometry,
+            "scales": args.scales or SCALES}
+    if args.sensors:
+        plan["sensors"] = args.sensors
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
                         free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
-                        target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet)
+                        target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet, **plan)
         print(format_calibration(doc))
         print(f"wrote {Path(args.out) / 'calibration.json'}, calibration.csv, calibration.png")
         return 0
     table = run_detection(args.out, _monitor_config(args), args.scene, frames=args.frames,
                           free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
-                          progress=not args.quiet, split=args.split)
+                          progress=not args.quiet, split=args.split, **plan)
     print(format_detection(table))
     print(f"wrote {Path(args.out) / 'detection.json'}, detection.csv, detection.png")
     return 0
@@ -414,6 +418,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibration: the target must also hold this many sigma below the chosen one")
     a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (750 = 150 s)")
     a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
+    a.add_argument("--speeds", type=_floats, default=(1.2,), help="robot speeds, m/s (e.g. 0.3,1.5,4,10)")
+    a.add_argument("--estimates", type=_words, default=("sim",),
+                   help="whose poses the monitor judges: sim (the bag's odometry, --odometry's error) and/or kiss "
+                        "(KISS-ICP on the bag's clouds); drift episodes go on top")
+    a.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
+                   help="the simulated odometry's everyday error under the episodes")
+    a.add_argument("--rate", type=float, default=5.0, help="scans per second of the bags (10 = every sweep)")
+    a.add_argument("--scales", type=_floats, default=None, help="drift scales of the episode bags (default 1, 1.5, 2)")
+    a.add_argument("--sensors", type=_sensors, default=None,
+                   help="sensors the bags cycle through (default: the split's own, held out between splits)")
     a.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_monitor_args(a, "labels")
     a.set_defaults(func=cmd_alarms)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,22 +50,49 @@ RATE_EPISODE_FRACTION = 1 / 3  # ... and at most this fraction of the weakest ep
 CLEAN_AFTER_S = 10.0  # s after a drift episode's end before a drift bag's windows count as drift-free
 
 
+#: Speeds of the transfer table (m/s: a slow AMR, walking / handheld, a legged robot or fast AMR, a car) and
+#: the scenes each is driven in (a car at 10 m/s only fits the garage).
+SPEEDS = (0.3, 1.5, 4.0, 10.0)
+SPEED_SCENES = {0.3: ("office1", "office2", "floor2"), 1.5: ("floor2", "office1", "garage", "office2"),
+                4.0: ("garage", "floor2"), 10.0: ("garage",)}
+#: Sensors each split's bags cycle through: the evaluation's are held out from calibration.
+SPLIT_SENSORS = {"calibration": ("VLP-32C", "OS1-64"), "evaluation": ("VLP-16", "OS1-128", "XT32", "HDL-32E")}
+#: What plays the SLAM beside the monitor: the bag's own odometry (the simulator's error model, SimConfig.odometry)
+#: or KISS-ICP run on the bag's clouds; drift episodes go on top of either.
+ESTIMATES = ("sim", "kiss")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One replay of the plan: a simulated bag and whose poses the monitor judges (ESTIMATES)."""
+
+    sim: SimConfig
+    estimate: str = "sim"
+
+    @property
+    def name(self) -> str:
+        return _name(self.sim) + ("" if self.estimate == "sim" else f"_{self.estimate}")
+
+
 def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, rate: float = 5.0,
-              split: str = "evaluation") -> list[SimConfig]:
-    """The bag set of ``split``: one bag per (mode, scale), then ``free_bags`` drift-free bags; scenes cycle."""
+              split: str = "evaluation", speeds=(1.2,), estimates=("sim",), odometry: str = "ideal",
+              scales=SCALES, sensors=None) -> list[Run]:
+    """The runs of ``split``: per group of the split, speed and estimate, one bag per (mode, scale), then
+    ``free_bags`` drift-free bags; scenes cycle (those of SPEED_SCENES a speed fits in, among ``scenes``), and
+    so do the split's sensors (SPLIT_SENSORS, or ``sensors``). The estimates of one bag share it."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    sensors = tuple(sensors or SPLIT_SENSORS[split])
     runs = []
     for layouts, seed0 in SPLITS[split]:
-        k = 0
-        for mode in MODES:
-            for scale in SCALES:
-                runs.append(SimConfig(scene=scenes[k % len(scenes)], layout_seed=layouts[k % len(layouts)],
-                                      seed=seed0 + k, frames=frames, rate=rate, drift=DriftSpec(mode, scale)))
-                k += 1
-        for j in range(free_bags):
-            runs.append(SimConfig(scene=scenes[(k + j) % len(scenes)], layout_seed=layouts[(k + j) % len(layouts)],
-                                  seed=seed0 + k + j, frames=free_frames, rate=rate))
+        for i, speed in enumerate(speeds):
+            fits = [s for s in scenes if s in SPEED_SCENES.get(speed, scenes)] or list(scenes)
+            drifts = [DriftSpec(m, k) for m in MODES for k in scales] + [DriftSpec()] * free_bags
+            for k, drift in enumerate(drifts):
+                sim = SimConfig(scene=fits[k % len(fits)], layout_seed=layouts[k % len(layouts)],
+                                seed=seed0 + 100 * i + k, frames=free_frames if drift.mode == "none" else frames,
+                                rate=rate, speed=speed, drift=drift, odometry=odometry, sensor=sensors[k % len(sensors)])
+                runs += [Run(sim, e) for e in estimates]
     return runs
 
 
@@ -77,7 +104,9 @@ def split_description(split: str) -> str:
 def _name(sim: SimConfig) -> str:
     d = sim.drift
     tag = "free" if d.mode == "none" else f"{d.mode}{d.scale:g}"
-    return f"{sim.scene}_{tag}_L{sim.layout_seed}_s{sim.seed}"
+    extra = "" if (sim.speed, sim.sensor, sim.odometry) == (1.2, "VLP-32C", "ideal") else \
+        f"_v{sim.speed:g}_{sim.sensor}_{sim.odometry}"
+    return f"{sim.scene}_{tag}_L{sim.layout_seed}_s{sim.seed}{extra}"
 
 
 def _bag(sim: SimConfig, bags: Path, progress: bool) -> Path:
@@ -141,25 +170,51 @@ def _same_run(saved: dict, config: Config) -> bool:
     return now == was and not saved.get("error") and saved.get("record_format") == RECORD_FORMAT
 
 
-def replay_windows(sim: SimConfig, out: Path, config: Config, progress: bool) -> tuple[list[dict], dict]:
-    """(window records assessed with config.health, replay summary) of one bag of the plan, replayed once."""
-    path = _bag(sim, out / "bags", progress)
-    target = out / "replays" / _name(sim)
+def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple[list[dict], dict]:
+    """(window records assessed with config.health, replay summary) of one run of the plan, replayed once:
+    the bag's own odometry, or KISS-ICP's poses of its clouds with the bag's drift episodes injected on top
+    (a sidecar bag replayed beside it)."""
+    path = _bag(run.sim, out / "bags", progress)
+    target = out / "replays" / run.name
     saved = target / "windows.json"
     if saved.exists():
         doc = load_windows(saved)
         if (_same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path))
-                and doc["summary"].get("weights") == _weights_digest(config)):
+                and doc["summary"].get("weights") == _weights_digest(config)
+                and doc["summary"].get("estimate", "sim") == run.estimate):
             return reassess(doc["windows"], config.health), doc["summary"]
-    res = replay(path, target, config, ReplayOptions(progress=progress, plot=True))
+    options = ReplayOptions(progress=progress, plot=True)
+    if run.estimate == "kiss":
+        options = replace(options, odom_topic=KISS_TOPIC, beside=(_kiss_sidecar(path, out / "kiss", progress),))
+    res = replay(path, target, config, options)
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
-    res.summary["bag_truth"] = bag_identity(load_truth(path))
-    res.summary["weights"] = _weights_digest(config)
+    extra = {"bag_truth": bag_identity(load_truth(path)), "weights": _weights_digest(config), "estimate": run.estimate}
+    res.summary.update(extra)
     doc = load_windows(saved)
-    doc["summary"].update(bag_truth=res.summary["bag_truth"], weights=res.summary["weights"])
+    doc["summary"].update(extra)
     write_json(saved, doc)
     return res.windows, res.summary
+
+
+KISS_TOPIC = "/odom_kiss"
+
+
+def _kiss_sidecar(path: Path, folder: Path, progress: bool) -> Path:
+    """A bag beside ``path`` with KISS-ICP's poses of its clouds as odometry (experiments/odometry.py, cached),
+    the bag's drift episodes (truth.json) injected on top exactly as the simulator injects them."""
+    from ..sim.drift import Episode, estimated_poses
+    from .odometry import cached_kiss, write_odometry_bag
+
+    truth = load_truth(path)
+    stamps, poses, frame, _ = cached_kiss(path, folder / f"{path.name}.npz", progress=progress)
+    episodes = [Episode(**e) for e in truth["episodes"]]
+    drift = DriftSpec(**truth["config"]["drift"])
+    est = estimated_poses(stamps, poses, drift, episodes, np.random.default_rng(0)) if episodes else poses
+    side = folder / f"{path.name}_odom"
+    if side.exists():
+        shutil.rmtree(side)
+    return write_odometry_bag(side, stamps, est, frame, KISS_TOPIC)
 
 
 def _weights_digest(config: Config) -> str | None:
@@ -181,18 +236,21 @@ def clean_windows(records: list[dict], episodes: list[dict], settle_s: float = C
                                           for ep in episodes)]
 
 
-def score(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: int) -> dict:
-    """The detection table of replayed bags: (sim, window records, summary, truth) per bag. False WARNs are
-    counted on the drift-free bags (the goal's measure) and, apart, on the clean stretches of drift bags."""
+def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) -> dict:
+    """The detection table of replayed runs: (run, window records, summary, truth) per run. False WARNs are
+    counted on the drift-free bags (the goal's measure) and, apart, on the clean stretches of drift bags;
+    ``cells`` splits it all by (speed, estimate) and gives the drift rates' and rpe_estimate's accuracy there."""
     rows, free = [], {"windows": 0, "false_warn_windows": 0, "minutes": 0.0, "bags": []}
     clean = {"windows": 0, "false_warn_windows": 0, "minutes": 0.0}
-    for sim, windows, summary, truth in runs:
+    for run, windows, summary, truth in runs:
+        sim = run.sim
         if sim.drift.mode == "none":
             alarms = [r for r in windows if r["level"] in ALARM]
             free["windows"] += len(windows)
             free["false_warn_windows"] += len(alarms)
             free["minutes"] += summary["bag_s"] / 60
-            free["bags"].append({"bag": _name(sim), "windows": len(windows), "false_warns": len(alarms),
+            free["bags"].append({"bag": run.name, "speed": sim.speed, "estimate": run.estimate, "sensor": sim.sensor,
+                                 "windows": len(windows), "false_warns": len(alarms), "minutes": summary["bag_s"] / 60,
                                  "reasons": sorted({r["message"] for r in alarms})})
         else:
             hits = [h for h in episode_hits(windows, truth["episodes"], within) if h["covered"]]
@@ -200,10 +258,13 @@ def score(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: i
             clean["windows"] += len(calm)
             clean["false_warn_windows"] += sum(r["level"] in ALARM for r in calm)
             clean["minutes"] += len(calm) * _window_s(windows) / 60
-            rows.append({"bag": _name(sim), "mode": sim.drift.mode, "scale": sim.drift.scale,
+            rows.append({"bag": run.name, "mode": sim.drift.mode, "scale": sim.drift.scale, "speed": sim.speed,
+                         "estimate": run.estimate, "sensor": sim.sensor,
                          "episodes": len(hits), "detected": sum(h["detected"] for h in hits),
                          "latencies": [h["latency_windows"] for h in hits],
-                         "scans_per_s": summary.get("scans_per_s")})
+                         "accuracy": rate_accuracy(windows, truth["episodes"]),
+                         "clean_windows": len(calm), "clean_false_warns": sum(r["level"] in ALARM for r in calm),
+                         "clean_minutes": len(calm) * _window_s(windows) / 60, "scans_per_s": summary.get("scans_per_s")})
     n_ep = sum(r["episodes"] for r in rows)
     n_hit = sum(r["detected"] for r in rows)
     per_10min = 10 * free["false_warn_windows"] / free["minutes"] if free["minutes"] else float("nan")
@@ -211,7 +272,45 @@ def score(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: i
             "detection_rate": n_hit / n_ep if n_ep else float("nan"), "drift_free": free,
             "false_warns_per_10min": per_10min, "clean_stretches": clean,
             "clean_false_warns_per_10min": 10 * clean["false_warn_windows"] / clean["minutes"]
-            if clean["minutes"] else float("nan")}
+            if clean["minutes"] else float("nan"), "cells": _cells(rows, free["bags"])}
+
+
+def rate_accuracy(windows: list[dict], episodes: list[dict]) -> list[dict]:
+    """Per episode: the median over the windows lying wholly inside it of each injected rate's reading divided
+    by the injected rate (rotation °/s, translation m/s), and of rpe_estimate divided by the true RPE."""
+    out = []
+    for ep in episodes:
+        inside = [w for w in windows if w["start"] >= ep["start"] and w["end"] <= ep["end"]]
+        if not inside:
+            continue
+        row = {}
+        for rate, injected in (("rot_rate", np.degrees(ep["rot_rate"])), ("trans_rate", ep["trans_rate"])):
+            if injected > 0:
+                row[rate] = float(np.nanmedian([w.get(rate, np.nan) for w in inside])) / injected
+        rpe = [w.get("rpe_estimate", np.nan) / w["rpe"] for w in inside if w.get("rpe", 0) > 0]
+        row["rpe_estimate"] = float(np.nanmedian(rpe)) if rpe else float("nan")
+        out.append(row)
+    return out
+
+
+def _cells(rows: list[dict], free_bags: list[dict]) -> list[dict]:
+    """The table by (speed, estimate): episodes detected, false WARN per 10 min (drift-free bags and clean
+    stretches together), and the median accuracy ratios of the rates and rpe_estimate."""
+    keys = sorted({(r["speed"], r["estimate"]) for r in rows} | {(b["speed"], b["estimate"]) for b in free_bags})
+    cells = []
+    for speed, est in keys:
+        mine = [r for r in rows if (r["speed"], r["estimate"]) == (speed, est)]
+        bags = [b for b in free_bags if (b["speed"], b["estimate"]) == (speed, est)]
+        minutes = sum(b["minutes"] for b in bags) + sum(r["clean_minutes"] for r in mine)
+        false = sum(b["false_warns"] for b in bags) + sum(r["clean_false_warns"] for r in mine)
+        acc = [a for r in mine for a in r["accuracy"]]
+        cells.append({"speed": speed, "estimate": est, "sensors": sorted({r["sensor"] for r in mine + bags}),
+                      "episodes": sum(r["episodes"] for r in mine), "detected": sum(r["detected"] for r in mine),
+                      "false_warns": false, "minutes": minutes,
+                      "false_warns_per_10min": 10 * false / minutes if minutes else float("nan"),
+                      **{k: float(np.nanmedian([a[k] for a in acc if k in a])) if any(k in a for a in acc)
+                         else float("nan") for k in ("rot_rate", "trans_rate", "rpe_estimate")}})
+    return cells
 
 
 def _window_s(records: list[dict]) -> float:
@@ -220,33 +319,38 @@ def _window_s(records: list[dict]) -> float:
     return float(np.median(np.diff(starts))) if len(starts) > 1 else 0.0
 
 
-def _replay_split(out: Path, config: Config, split: str, scenes, frames, free_bags, free_frames, progress):
+def _replay_split(out: Path, config: Config, split: str, scenes, frames, free_bags, free_frames, progress,
+                  **plan) -> list[tuple[Run, list[dict], dict, dict | None]]:
     runs = []
-    for sim in plan_bags(scenes, frames, free_bags, free_frames, split=split):
-        windows, summary = replay_windows(sim, out, config, progress)
-        runs.append((sim, windows, summary, load_truth(out / "bags" / _name(sim))))
+    for run in plan_bags(scenes, frames, free_bags, free_frames, split=split, **plan):
+        windows, summary = replay_windows(run, out, config, progress)
+        runs.append((run, windows, summary, load_truth(out / "bags" / _name(run.sim))))
     return runs
 
 
 def run_detection(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
-                  free_frames: int = 750, within: int = 2, progress: bool = True, split: str = "evaluation") -> dict:
+                  free_frames: int = 750, within: int = 2, progress: bool = True, split: str = "evaluation",
+                  **plan) -> dict:
     """Simulate (or reuse) the bags of ``split`` under out/bags, replay each to out/replays (or reuse the
-    replay and re-assess health), score, and write out/detection.json, .csv and .png. Returns the table."""
+    replay and re-assess health), score, and write out/detection.json, .csv and .png. Returns the table.
+    ``plan``: plan_bags' transfer dimensions (rate, speeds, estimates, odometry, scales, sensors)."""
     out = Path(out)
-    runs = _replay_split(out, config, split, scenes, frames, free_bags, free_frames, progress)
+    runs = _replay_split(out, config, split, scenes, frames, free_bags, free_frames, progress, **plan)
     table = score(runs, within)
     table.update(split=split, bags_from=split_description(split), window_size=config.window.size,
-                 health=asdict(config.health), segmentation=config.segmentation.mode)
+                 health=asdict(config.health), segmentation=config.segmentation.mode,
+                 plan={k: list(v) if isinstance(v, tuple) else v for k, v in plan.items()})
     _write(out, table)
     return table
 
 
-def rate_margins(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], within: int) -> dict:
+def rate_margins(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) -> dict:
     """How far the drift rates keep drift-free windows from drifting ones (what the rate limits sit between):
     per rate, the largest value of a drift-free window (drift-free bags and clean stretches) and, per episode,
     the largest of its first ``within`` windows, of which the smallest over episodes is reported."""
     free, first = {r: [] for r in RATES}, {r: [] for r in RATES}
-    for sim, windows, _, truth in runs:
+    for run, windows, _, truth in runs:
+        sim = run.sim
         calm = windows if sim.drift.mode == "none" else clean_windows(windows, truth["episodes"])
         ends = np.array([w["end"] for w in windows])
         for rate in RATES:
@@ -264,9 +368,9 @@ def rate_margins(runs: list[tuple[SimConfig, list[dict], dict, dict | None]], wi
             for rate in RATES}
 
 
-def _group(sim: SimConfig) -> int:
-    """Index of the calibration group (SPLITS) a bag of the calibration split belongs to."""
-    return next(i for i, (layouts, _) in enumerate(SPLITS["calibration"]) if sim.layout_seed in layouts)
+def _group(run: Run) -> int:
+    """Index of the calibration group (SPLITS) a run of the calibration split belongs to."""
+    return next(i for i, (layouts, _) in enumerate(SPLITS["calibration"]) if run.sim.layout_seed in layouts)
 
 
 def _false_rate(table: dict) -> float:
@@ -293,8 +397,8 @@ def choose_sigma(sweep: list[dict], target_per_10min: float, margin_sigma: float
 
 def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
               free_frames: int = 750, within: int = 2, target_per_10min: float = 0.5, margin_sigma: float = 0.25,
-              progress: bool = True, sigmas=SIGMA_GRID) -> dict:
-    """Choose health.warn_sigma on the CALIBRATION split: the smallest sigma of the grid whose false WARN rate
+              progress: bool = True, sigmas=SIGMA_GRID, **plan) -> dict:
+    """Choose health.warn_sigma on the CALIBRATION split (``plan``: plan_bags' transfer dimensions): the smallest sigma of the grid whose false WARN rate
     on the calibration drift-free data (drift-free bags and the clean stretches of the drift bags) is <=
     ``target_per_10min`` (a margin under the goal of 1 per 10 min; the smallest such sigma detects the most)
     in EVERY calibration group (floor plans differ: a pooled rate let one plan's false alarms hide behind
@@ -302,12 +406,12 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
     The other health settings (persistence, baseline) are the config's. Writes out/calibration.json/.csv/.png; returns the sweep
     and the choice. The evaluation split is not touched."""
     out = Path(out)
-    runs = _replay_split(out, config, "calibration", scenes, frames, free_bags, free_frames, progress)
+    runs = _replay_split(out, config, "calibration", scenes, frames, free_bags, free_frames, progress, **plan)
     sweep = []
     for sigma in sigmas:
         health = replace(config.health, warn_sigma=float(sigma), error_sigma=max(config.health.error_sigma,
                                                                                  float(sigma)))
-        assessed = [(sim, reassess(w, health), s, t) for sim, w, s, t in runs]
+        assessed = [(run, reassess(w, health), s, t) for run, w, s, t in runs]
         table = score(assessed, within)
         fa = table["drift_free"]["false_warn_windows"] + table["clean_stretches"]["false_warn_windows"]
         minutes = table["drift_free"]["minutes"] + table["clean_stretches"]["minutes"]
@@ -440,5 +544,18 @@ def format_detection(table: dict) -> str:
     for b in f["bags"]:
         if b["false_warns"]:
             lines.append(f"  {b['bag']}: {b['false_warns']} false WARN: {'; '.join(b['reasons'][:3])}")
+    if len(table.get("cells", [])) > 1 or any(c["estimate"] != "sim" for c in table.get("cells", [])):
+        lines += ["", format_cells(table["cells"], table["within_windows"])]
+    return "\n".join(lines)
+
+
+def format_cells(cells: list[dict], within: int) -> str:
+    """The table by speed and estimate: detection, false WARN per 10 min, accuracy (median measured/injected)."""
+    lines = [f"{'speed':>6} {'estimate':>8} {'detected':>9} {'false WARN':>16} {'rot':>6} {'trans':>6} {'rpe_est':>7}  sensors",
+             f"{'m/s':>6} {'':>8} {f'<= {within} win':>9} {'per 10 min':>16} {'ratio':>6} {'ratio':>6} {'ratio':>7}"]
+    for c in cells:
+        lines.append(f"{c['speed']:>6g} {c['estimate']:>8} {c['detected']:>4}/{c['episodes']:<4} "
+                     f"{c['false_warns']:>3} in {c['minutes']:4.1f} = {c['false_warns_per_10min']:4.2f} "
+                     f"{c['rot_rate']:>6.2f} {c['trans_rate']:>6.2f} {c['rpe_estimate']:>7.2f}  {', '.join(c['sensors'])}")
     return "\n".join(lines)
 
