@@ -117,17 +117,18 @@ def test_choose_sigma_keeps_a_margin_from_the_false_alarm_cliff():
 def test_rate_margins_span_drift_free_maxima_and_the_weakest_episode():
     from topometric_ros.experiments.alarms import rate_margins
     from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.experiments.alarms import Run
     from topometric_ros.sim.writer import SimConfig
 
     def recs(rot, trans):
         return [{**r, "rot_rate": a, "trans_rate": b} for r, a, b in zip(records(["OK"] * len(rot)), rot, trans)]
 
-    free = (SimConfig(scene="garage", frames=10), recs([0.1, 0.3, 0.2], [0.01, 0.004, 0.02]), {}, None)
+    free = (Run(SimConfig(scene="garage", frames=10)), recs([0.1, 0.3, 0.2], [0.01, 0.004, 0.02]), {}, None)
     episode = {"episodes": [{"start": 1.5, "end": 3.0}]}  # its first windows: 1 and 2
-    r_bag = (SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0)),
+    r_bag = (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0))),
              recs([0.25, 0.6, 2.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1],
                   [0.01, 0.05, 0.06] + [0.03] + [0.001] * 11), {}, episode)
-    t_bag = (SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0)),
+    t_bag = (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0))),
              recs([0.1, 0.1, 0.1], [0.0, 0.15, 0.18]), {}, episode)
     m = rate_margins([free, r_bag, t_bag], within=2)
     # drift-free: the free bag and the r bag's windows >= 10 s after its episode (0.1 °/s, 0.001 m/s)

@@ -67,18 +67,30 @@ def azimuth_times(points: np.ndarray, period_s: float, stamp_at: str = "first") 
 
 def deskew(points: np.ndarray, times: np.ndarray, motion: SweepMotion) -> np.ndarray:
     """(N, 3) float32 points moved to the sensor frame at the stamp: p' = R(t) p + T(t), with R, T
-    interpolated between the knots (times outside them take the end knots)."""
+    interpolated between the knots (rotation vector and translation, linearly; times outside the knots take
+    the end knots)."""
     t = np.clip(np.asarray(times, np.float64), motion.times[0], motion.times[-1])
     k = np.clip(np.searchsorted(motion.times, t, "right") - 1, 0, len(motion.times) - 2)
-    a = ((t - motion.times[k]) / (motion.times[k + 1] - motion.times[k]))[:, None]
-    rv = (1 - a) * motion.rotvecs[k] + a * motion.rotvecs[k + 1]
-    tr = (1 - a) * motion.translations[k] + a * motion.translations[k + 1]
-    return (_rotate(rv, np.asarray(points, np.float64)) + tr).astype(np.float32)
+    a = (t - motion.times[k]) / (motion.times[k + 1] - motion.times[k])
+    b = 1.0 - a
+    p = np.asarray(points, np.float64)
+    out = np.empty_like(p)
+    rv = [b * motion.rotvecs[k, c] + a * motion.rotvecs[k + 1, c] for c in range(3)]
+    tr = [b * motion.translations[k, c] + a * motion.translations[k + 1, c] for c in range(3)]
+    _rotate(rv, (p[:, 0], p[:, 1], p[:, 2]), out)
+    for c in range(3):
+        out[:, c] += tr[c]
+    return out.astype(np.float32)
 
 
-def _rotate(rv: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Rotate each point p by its own rotation vector rv (Rodrigues), (N, 3) each."""
-    theta = np.linalg.norm(rv, axis=1, keepdims=True)
-    k = rv / np.maximum(theta, 1e-12)
+def _rotate(rv, p, out: np.ndarray) -> None:
+    """Rotate each point (columns p) by its own rotation vector (columns rv), Rodrigues, into ``out`` (N, 3):
+    column arithmetic, no (N, 3, 3) matrices."""
+    theta = np.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
+    inv = 1.0 / np.maximum(theta, 1e-12)
+    kx, ky, kz = rv[0] * inv, rv[1] * inv, rv[2] * inv
     c, s = np.cos(theta), np.sin(theta)
-    return p * c + np.cross(k, p) * s + k * np.einsum("ij,ij->i", k, p)[:, None] * (1 - c)
+    dot = (kx * p[0] + ky * p[1] + kz * p[2]) * (1 - c)
+    out[:, 0] = p[0] * c + (ky * p[2] - kz * p[1]) * s + kx * dot
+    out[:, 1] = p[1] * c + (kz * p[0] - kx * p[2]) * s + ky * dot
+    out[:, 2] = p[2] * c + (kx * p[1] - ky * p[0]) * s + kz * dot
