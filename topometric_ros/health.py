@@ -103,7 +103,7 @@ class Health:
 
     def assess(self, result: Any) -> Assessment:
         """Level and reason for a WindowResult (its ``level``/``message`` are set too). The message leads with
-        the alarms ("rotation drift: 3.5 °/s (limit 1.2 ...)"), then the rest."""
+        the alarms, drift rates first ("rotation drift: 3.5 °/s (limit 1.2 ...)"), then the rest."""
         c = self.config
         level, alarms, notes, z, warn_at, error_at = "OK", [], [], {}, {}, {}
         learning = False
@@ -111,6 +111,16 @@ class Health:
         self._high.append(any(v >= c.warn_sigma for v in sigma_z.values()))
         persistent = sum(self._high) >= c.warn_persist
         limits = self.rates.limits(result)
+        for rate, (meaning, unit) in RATES.items():
+            value = float(getattr(result, rate, float("nan")))
+            warn_at[rate], error_at[rate] = limits[rate]
+            if not np.isfinite(value):
+                continue  # no co-plane group: already reported as CPV undefined
+            for name, limit in (("ERROR", limits[rate][1]), ("WARN", limits[rate][0])):
+                if limit > 0 and value >= limit:
+                    level = _worse(level, name)
+                    alarms.append(f"{meaning}: {value:.3g} {unit} (limit {limit:.3g}{self.rates.why(result)})")
+                    break
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
@@ -139,16 +149,6 @@ class Health:
             elif base and z[metric] >= c.warn_sigma:
                 notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
                              f"{sum(self._high)} of {c.warn_persist} windows needed")
-        for rate, (meaning, unit) in RATES.items():
-            value = float(getattr(result, rate, float("nan")))
-            warn_at[rate], error_at[rate] = limits[rate]
-            if not np.isfinite(value):
-                continue  # no co-plane group: already reported as CPV undefined
-            for name, limit in (("ERROR", limits[rate][1]), ("WARN", limits[rate][0])):
-                if limit > 0 and value >= limit:
-                    level = _worse(level, name)
-                    alarms.append(f"{meaning}: {value:.3g} {unit} (limit {limit:.3g}{self.rates.why(result)})")
-                    break
         self.rates.learn(result)
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
