@@ -326,6 +326,9 @@ def _truth(path) -> dict | None:
 
 
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
+    """Ground-truth columns of each window record (bags with ground truth): ``rpe`` (Eq. 4 over its consecutive
+    scans) and the TRUE drift rates over the window, ``true_rot_rate`` (°/s) and ``true_trans_rate`` (m/s):
+    the error E = ΔT_gt⁻¹ ΔT_est between its first and last scan, its angle and translation over the span."""
     from .metrics.rpe import rpe
 
     order = np.argsort(gt_stamps, kind="stable")
@@ -333,8 +336,13 @@ def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
     for rec, poses in zip(records, window_poses):
         stamps = np.array([s for s, _ in poses])
         gt, valid = geometry.interpolate_poses(gt_stamps, gt_poses, stamps)
-        rec["rpe"] = (rpe(gt @ extrinsic, np.stack([p for _, p in poses]))
-                      if valid.all() and len(stamps) > 1 else float("nan"))
+        ok = bool(valid.all()) and len(stamps) > 1
+        est = np.stack([p for _, p in poses])
+        rec["rpe"] = rpe(gt @ extrinsic, est) if ok else float("nan")
+        err = geometry.inverse(geometry.inverse(gt[0] @ extrinsic) @ gt[-1] @ extrinsic) @ (geometry.inverse(est[0]) @ est[-1])
+        span = float(stamps[-1] - stamps[0]) if ok else float("nan")
+        rec["true_rot_rate"] = float(np.degrees(geometry.rotation_angle(err[:3, :3])) / span) if ok else float("nan")
+        rec["true_trans_rate"] = float(np.linalg.norm(err[:3, 3]) / span) if ok else float("nan")
 
 
 def _summary(bag_path, monitor: Monitor, records: list[dict], feed: _Feed, notes: list[str], speed) -> dict:
