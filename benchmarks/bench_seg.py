@@ -8,7 +8,7 @@ the benchmark scans. Also: the time split into projection, network (+ softmax re
 back-projection; a frozen TorchScript trace and channels-last eager for reference; a batch of 8 scans.
 GPU (when CUDA is present): batched scans/s (goal >= 2000). int8 is not measured here: PyTorch's dynamic
 int8 does not cover convolutions, and ONNX Runtime static int8 (QDQ, tried once) agreed with fp32 on only
-~89 % of labels (README).
+~89 % of labels (docs/results.md).
 """
 from __future__ import annotations
 

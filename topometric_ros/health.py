@@ -300,7 +300,7 @@ def _fmt(value: Any) -> str:
 
 def window_values(result: Any, counters: Mapping[str, int] | None = None,
                   extra: Mapping[str, Any] | None = None) -> dict[str, str]:
-    """The KeyValue strings of one window's status (DESIGN.md's list, then the monitor's counters)."""
+    """The KeyValue strings of one window's status (docs/design.md's list, then the monitor's counters)."""
     values = {"pne": result.pne, "cpv": result.cpv}
     for name in ("rpe_estimate", *RATES, "speed", "turn_rate"):
         values[name] = getattr(result, name, float("nan"))
