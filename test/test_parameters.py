@@ -86,3 +86,13 @@ def test_a_bare_on_or_off_is_a_choice_not_a_type_error():
     assert parameters.config_from({"sensor.deskew": False}).sensor.deskew == "off"
     with pytest.raises(ValueError, match="segmentation.mode"):
         parameters.check("segmentation.mode", True)
+
+
+def test_the_shipped_parameter_file_holds_every_config_leaf_at_its_default():
+    """config/topometric.yaml is the node's parameter file and documents every tunable: it names every config
+    leaf, each at the default config.py gives (a change of default must reach the file too)."""
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "config" / "topometric.yaml").read_text())["/**"]["ros__parameters"]
+    assert set(config.flatten(config.Config())) <= set(doc)
+    assert config.load_config(ROOT / "config" / "topometric.yaml") == config.Config()
