@@ -23,7 +23,12 @@ ODOM_TOPIC = "/odom_kiss"
 ODOM_FRAME = "kiss_odom"
 
 
-def kiss_odometry(path: str | Path, topic: str = "/points", voxel_size: float = 0.0,
+#: m, KISS-ICP's voxel size here: its own rule (max range / 100) gives 0.1 m indoors, 4-8x slower than this
+#: for about 1.5x the per-scan error on our simulated scenes (measured on office1 and garage, 10 Hz VLP-32C).
+VOXEL_SIZE = 0.25
+
+
+def kiss_odometry(path: str | Path, topic: str = "/points", voxel_size: float = VOXEL_SIZE,
                   progress: bool = True) -> tuple[np.ndarray, np.ndarray, str, dict]:
     """(stamps (K,) s, poses (K, 4, 4) sensor-to-odom, cloud frame id, info) of KISS-ICP over the clouds of
     ``topic``. voxel_size 0 = KISS-ICP's own choice (max_range / 100). info: scans, seconds, Hz."""
