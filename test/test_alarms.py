@@ -164,3 +164,20 @@ def test_network_replays_are_keyed_by_the_weights_file_contents(tmp_path):
         f.write(b"\0")  # other bytes, other key (a cached replay with the old weights is not reused)
     assert _weights_digest(load_config(overrides={"segmentation.mode": "network",
                                                   "segmentation.weights": str(other)})) != shipped
+
+
+def test_an_alarm_where_the_slam_truly_drifted_is_confirmed_not_false():
+    """Drift-free bag (no injected episode), two alarms: one where the ground truth shows the SLAM itself drifting
+    past the limit (a real catch), one where it does not (false). strict counts both."""
+    from topometric_ros.experiments.alarms import Run, real_drift
+    from topometric_ros.sim.writer import SimConfig
+
+    recs = records(["OK"] * 98 + ["WARN", "ERROR"])
+    for r in recs:
+        r.update(rot_rate_warn_at=0.6, trans_rate_warn_at=0.05, true_rot_rate=0.1, true_trans_rate=0.01)
+    recs[98]["true_trans_rate"] = 0.3  # the SLAM slid: the WARN is right
+    assert real_drift(recs[98]) and not real_drift(recs[99]) and not real_drift({"level": "WARN"})
+    table = score([(Run(SimConfig(scene="garage", frames=10)), recs, {"bag_s": 600.0}, None)], within=2)
+    assert table["drift_free"]["false_warn_windows"] == 1 and table["drift_free"]["strict_warn_windows"] == 2
+    (cell,) = table["cells"]
+    assert cell["false_warns_per_10min"] == pytest.approx(1.0) and cell["strict_warns_per_10min"] == pytest.approx(2.0)
