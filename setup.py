@@ -35,7 +35,8 @@ setup(
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap-ros2-support>=0.5",
-                 "evo>=1.20"],
+                 "evo>=1.20", "kiss-icp>=1.0,<2"],  # kiss-icp: the real LiDAR odometry beside the monitor (experiments)
+        "research": ["kiss-icp>=1.0,<2"],
     },
     entry_points={
         "console_scripts": [
