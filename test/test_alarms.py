@@ -181,3 +181,29 @@ def test_an_alarm_where_the_slam_truly_drifted_is_confirmed_not_false():
     assert table["drift_free"]["false_warn_windows"] == 1 and table["drift_free"]["strict_warn_windows"] == 2
     (cell,) = table["cells"]
     assert cell["false_warns_per_10min"] == pytest.approx(1.0) and cell["strict_warns_per_10min"] == pytest.approx(2.0)
+
+
+def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
+    """A drift-free run whose jittery SLAM shows 0.09 m/s standing still (learned in its first windows) with one
+    0.3 m/s spike later, and a drift run whose 0.25 m/s episode starts at 20 s: a learned-floor margin of 2
+    (floor 0.18) keeps the spike an alarm, margins of 4 (0.36, capped by the factor) miss the episode."""
+    from topometric_ros.experiments.alarms import Run, sweep_rates
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig
+
+    def run(trans, drift):
+        recs = records(["OK"] * len(trans))
+        for r, v in zip(recs, trans):
+            r.update(pne=-8.0, cpv=1e-4, n_planes=40, rot_rate=0.1, trans_rate=v, speed=0.0, turn_rate=0.0)
+        return recs
+    free = run([0.09] * 15 + [0.09] * 30 + [0.3] + [0.09] * 14, None)
+    drift = run([0.09] * 20 + [0.34] * 6 + [0.09] * 4, "t")
+    runs = [(Run(SimConfig(scene="garage", frames=10)), free, {"bag_s": 300.0}, None),
+            (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0))), drift, {"bag_s": 30.0},
+             {"episodes": [{"start": 19.9, "end": 26.0, "rot_rate": 0.0, "trans_rate": 0.25}]})]
+    grid = {"noise_margin": (2.0, 3.0, 4.0), "noise_quantile": (0.75,), "noise_max_factor": (10.0,)}
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, 1.0, grid)
+    rows = {r["noise_margin"]: r for r in sweep}
+    assert rows[2.0]["worst_cell_false_per_10min"] > 1.0 and rows[3.0]["worst_cell_false_per_10min"] == 0.0
+    assert rows[3.0]["detected"] == 1 and rows[4.0]["detected"] == 0
+    assert chosen["noise_margin"] == 3.0

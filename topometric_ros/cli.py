@@ -134,6 +134,15 @@ def cmd_alarms(args: argparse.Namespace) -> int:
             "scales": args.scales or SCALES}
     if args.sensors:
         plan["sensors"] = args.sensors
+    if args.calibrate_rates:
+        from .experiments.alarms import calibrate_rates, format_rate_calibration
+
+        doc = calibrate_rates(args.out, _monitor_config(args), args.scene, frames=args.frames,
+                              free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
+                              target_per_10min=args.target, progress=not args.quiet, **plan)
+        print(format_rate_calibration(doc))
+        print(f"wrote {Path(args.out) / 'rate_calibration.json'}")
+        return 0
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
                         free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
@@ -415,6 +424,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bag set of the table (thresholds are calibrated on 'calibration' only)")
     a.add_argument("--calibrate", action="store_true",
                    help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
+    a.add_argument("--calibrate-rates", action="store_true",
+                   help="sweep the relative rate limits (learned floor, motion shares) on the calibration split")
     a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed")
     a.add_argument("--margin", type=float, default=0.25,
                    help="calibration: the target must also hold this many sigma below the chosen one")

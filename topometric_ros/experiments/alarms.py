@@ -456,6 +456,63 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
     return doc
 
 
+#: The relative rate limits' settings swept by calibrate_rates: the learned floor's margin, quantile and cap, and
+#: the motion shares (rotation per metre, translation per metre).
+RATE_GRID = {"noise_margin": (2.0, 3.0, 4.0), "noise_quantile": (0.75, 0.9), "noise_max_factor": (3.0, 5.0, 8.0),
+             "rot_per_m": (0.05, 0.1), "trans_per_m": (0.01, 0.02)}
+
+
+def calibrate_rates(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
+                    free_frames: int = 750, within: int = 2, target_per_10min: float = 0.5, progress: bool = True,
+                    grid: dict = RATE_GRID, **plan) -> dict:
+    """Choose the relative rate limits on the CALIBRATION split (``plan``: plan_bags' transfer dimensions): every
+    combination of ``grid`` is assessed again on the same replays (health only); the chosen one has no more than
+    ``target_per_10min`` false WARN per 10 min (ground-truth aware: see score) in EVERY (speed, estimate) cell
+    and detects the most episodes; ties go to the most sensitive (smallest margin, cap and shares). Writes
+    out/rate_calibration.json and returns it. The evaluation split is not touched."""
+    out = Path(out)
+    runs = _replay_split(out, config, "calibration", scenes, frames, free_bags, free_frames, progress, **plan)
+    sweep, chosen = sweep_rates(runs, config.health, within, target_per_10min, grid)
+    doc = {"split": "calibration", "bags_from": split_description("calibration"), "target_false_per_10min":
+           target_per_10min, "within_windows": within, "grid": {k: list(v) for k, v in grid.items()},
+           "health": asdict(config.health), "chosen": chosen, "sweep": sweep,
+           "plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.items()}}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "rate_calibration.json", doc)
+    return doc
+
+
+def sweep_rates(runs, health: HealthConfig, within: int, target_per_10min: float, grid: dict = RATE_GRID
+                ) -> tuple[list[dict], dict | None]:
+    """Every combination of ``grid`` applied to ``health`` and assessed again on the runs' window records:
+    the sweep rows and the chosen one (see calibrate_rates), None when none meets the target."""
+    import itertools
+
+    sweep = []
+    for values in itertools.product(*grid.values()):
+        table = score([(run, reassess(w, replace(health, **dict(zip(grid, values)))), s, t)
+                       for run, w, s, t in runs], within)
+        worst = max((c["false_warns_per_10min"] for c in table["cells"] if np.isfinite(c["false_warns_per_10min"])),
+                    default=np.nan)
+        sweep.append({**dict(zip(grid, values)), "detected": table["detected"], "episodes": table["episodes"],
+                      "detection_rate": table["detection_rate"], "worst_cell_false_per_10min": worst,
+                      "cells": table["cells"]})
+    fits = [r for r in sweep if r["worst_cell_false_per_10min"] <= target_per_10min]
+    return sweep, (max(fits, key=lambda r: (r["detected"], *(-r[k] for k in grid))) if fits else None)
+
+
+def format_rate_calibration(doc: dict) -> str:
+    """The chosen rate-limit settings and their table, for people."""
+    c = doc["chosen"]
+    if c is None:
+        return (f"no setting of the grid keeps every (speed, estimate) cell at <= {doc['target_false_per_10min']:g} "
+                "false WARN per 10 min on the calibration split")
+    knobs = ", ".join(f"health.{k}={c[k]:g}" for k in doc["grid"])
+    return (f"chosen on the calibration split ({doc['bags_from']}): {knobs}; detected {c['detected']}/{c['episodes']}, "
+            f"worst cell {c['worst_cell_false_per_10min']:.2f} false WARN per 10 min\n" + format_cells(c["cells"],
+                                                                                                   doc["within_windows"]))
+
+
 def _write_calibration(out: Path, doc: dict) -> None:
     from ..reports import pyplot, write_csv
 
