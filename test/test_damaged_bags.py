@@ -51,7 +51,8 @@ def bags(tmp_path_factory):
     root = tmp_path_factory.mktemp("damaged")
     out = {}
     for storage in ("mcap", "sqlite3"):
-        simulate(SimConfig(scene="office1", frames=FRAMES, rate=5.0, storage=storage), root / storage, progress=False)
+        simulate(SimConfig(scene="office1", frames=FRAMES, rate=5.0, storage=storage, compress=False), root / storage,
+                 progress=False)  # uncompressed chunks: the damage is placed by finding the clouds' bytes
         out[storage] = root / storage
     return out
 

@@ -222,10 +222,13 @@ class BagWriter:
     """Streaming rosbag2 writer (Jazzy types): ``with BagWriter(path) as w: w.write('/odom', t, msg)``.
 
     Topics are registered on first write from the message's type; ``latched`` topics (e.g. /tf_static)
-    are offered with transient-local QoS. The output directory must not exist yet.
+    are offered with transient-local QoS. The output directory must not exist yet. ``compress`` (MCAP only):
+    the file's chunks are zstd-compressed when the bag is closed (as ros2 bag record --compression-format zstd
+    --storage-preset-profile does for MCAP chunks; every MCAP reader reads them).
     """
 
-    def __init__(self, path: str | Path, storage: str = "mcap", latched: Iterable[str] = ("/tf_static",)):
+    def __init__(self, path: str | Path, storage: str = "mcap", latched: Iterable[str] = ("/tf_static",),
+                 compress: bool = False):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         if storage not in STORAGES:
@@ -237,6 +240,7 @@ class BagWriter:
         self._writer = Writer(self.path, version=9, storage_plugin=plugin)
         self._latched = set(latched)
         self._conns: dict[str, Any] = {}
+        self._compress = compress and storage == "mcap"
 
     def __enter__(self) -> "BagWriter":
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -245,6 +249,9 @@ class BagWriter:
 
     def __exit__(self, *exc: Any) -> None:
         self._writer.close()
+        if self._compress and exc[0] is None:
+            for file in self.path.glob("*.mcap"):
+                zstd_chunks(file)
 
     def write(self, topic: str, stamp: float, msg: Any) -> None:
         """Serialise and write one message with receive time ``stamp`` (s)."""
@@ -255,6 +262,33 @@ class BagWriter:
             self._conns[topic] = conn
         raw = typestore().serialize_cdr(msg, msg.__msgtype__)
         self._writer.write(conn, int(round(stamp * 1e9)), raw)
+
+
+def zstd_chunks(file: Path) -> None:
+    """Rewrite an MCAP file with zstd-compressed chunks (schemas, channels, messages and metadata records
+    copied as they are), replacing it only once the new file is complete."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    tmp = file.with_suffix(".mcap.tmp")
+    with open(file, "rb") as f, open(tmp, "wb") as g:
+        reader = make_reader(f)
+        writer = Writer(g, compression=CompressionType.ZSTD)
+        writer.start(profile=reader.get_header().profile, library=reader.get_header().library)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas.get(channel.schema_id, 0), channel.metadata)
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
+        for meta in reader.iter_metadata():
+            writer.add_metadata(meta.name, meta.metadata)
+        writer.finish()
+    tmp.replace(file)
 
 
 def load_truth(bag_path: str | Path) -> dict | None:

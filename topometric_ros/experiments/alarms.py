@@ -112,7 +112,8 @@ def _name(sim: SimConfig) -> str:
 def _bag(sim: SimConfig, bags: Path, progress: bool) -> Path:
     """Simulate the bag unless an identical one is already there (truth.json carries the config)."""
     path = bags / _name(sim)
-    want = json.loads(json.dumps({**asdict(sim), "drift": asdict(sim.drift), "simulator": SIM_VERSION}))  # as truth.json has it
+    want = bag_identity(json.loads(json.dumps({"config": {**asdict(sim), "drift": asdict(sim.drift)},
+                                               "simulator": SIM_VERSION})))  # as truth.json has it
     if bag_identity(load_truth(path)) == want:
         return path
     if path.exists():
