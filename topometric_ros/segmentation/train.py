@@ -91,11 +91,11 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
 
 
 def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator):
-    """n random azimuth crops (wrapping around) of random images of ONE image-shape group (chosen with
-    probability proportional to its images): xyz+intensity (n, 4, rows, w) float32 and labels; w = width or
-    the group's own width when that is narrower."""
-    sizes = np.array([len(g["images"]) for g in groups], float)
-    g = groups[int(rng.choice(len(groups), p=sizes / sizes.sum()))]
+    """n random azimuth crops (wrapping around) of random images of ONE image-shape group, the groups taking
+    turns at random with equal chances (a grid shape is a sensor family: the nine Ouster models share one, the
+    Mid-360 has its own; drawing by image count starved the small families): xyz+intensity (n, 4, rows, w)
+    float32 and labels; w = width or the group's own width when that is narrower."""
+    g = groups[int(rng.integers(len(groups)))]
     images, labels = g["images"], g["labels"]
     w = min(width, images.shape[-1])
     idx = rng.integers(len(images), size=n)
