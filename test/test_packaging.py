@@ -19,7 +19,8 @@ ROSDEP = {"numpy": "python3-numpy", "scipy": "python3-scipy", "numba": "python3-
           "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "pyyaml": "python3-yaml", "mcap": None,
           "onnx": None, "onnxruntime": "python3-onnxruntime-pip"}
 TEST_ROSDEP = {"pytest": "python3-pytest", "pytest-timeout": "python3-pytest-timeout",
-               "hypothesis": "python3-hypothesis", "mcap-ros2-support": None, "evo": None}
+               "hypothesis": "python3-hypothesis", "mcap-ros2-support": None, "evo": None,
+               "kiss-icp": None}
 
 
 def _setup_requirements() -> tuple[list[str], list[str]]:
