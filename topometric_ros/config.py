@@ -75,7 +75,7 @@ class PlaneConfig:
     tile_levels: int = 4  # quadtree levels: tiles of 1×1 up to 2^(levels-1) × 2^(levels-1) base tiles
     tile_min_points: int = 8  # fewer points of a class in a tile: the tile gives no plane seed
     tile_max_rms: float = 0.02  # m, RMS point-to-plane distance of a planar tile
-    tile_min_flatness: float = 2.5  # a tile's smaller in-plane spread over its RMS off-plane (lines are no seeds)
+    tile_min_flatness: float = 1.5  # a tile's smaller in-plane spread over its RMS off-plane (lines are no seeds)
     tile_angle_deg: float = 20.0  # deg, largest normal angle between neighbouring tiles grown into one segment
     # open3d detector: PointCloud.detect_planar_patches (Araújo & Oliveira 2020)
     o3d_knn: int = 30  # neighbours for normal estimation and the detector's search
