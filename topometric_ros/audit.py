@@ -215,8 +215,24 @@ def fleet_row(task: BagTask, records: list[dict], summary: dict) -> dict:
            "trans_rate_p99": _quantile([r.get("trans_rate") for r in records], 0.99),
            "episodes_alarmed": alarm_episodes(levels), "wall_s": summary.get("wall_s"),
            "scans_read": summary.get("scans_read"), "notes": summary.get("notes", []),
-           "path": task.path, "metrics_png": f"bags/{task.name}/metrics.png" if records else None}
+           "path": task.path, "metrics_png": f"bags/{task.name}/metrics.png" if records else None,
+           "worker": _where()}
     return row
+
+
+def _where() -> str:
+    """host:pid of this process, and the Ray node id when it runs as a Ray task."""
+    import socket
+    import sys
+
+    where = f"{socket.gethostname()}:{os.getpid()}"
+    ray = sys.modules.get("ray")  # not imported for it: a local run without Ray stays without it
+    try:
+        if ray is not None and ray.is_initialized():
+            where += f" node {ray.get_runtime_context().get_node_id()[:12]}"
+    except Exception:  # noqa: BLE001 - no Ray here: host:pid is enough
+        pass
+    return where
 
 
 # ------------------------------------------------------------------ the whole audit
@@ -329,12 +345,14 @@ def _cell(row: dict, col: str) -> str:
     if v is None or v == "":
         return '<td data-v=""></td>'
     if col == "bag" and row.get("metrics_png"):
-        return f'<td data-v="{html.escape(str(v))}"><a href="{html.escape(row["metrics_png"])}">{html.escape(str(v))}</a></td>'
-    if isinstance(v, float):
+        return f'<td class="name" data-v="{html.escape(str(v))}"><a href="{html.escape(row["metrics_png"])}">{html.escape(str(v))}</a></td>'
+    if isinstance(v, bool):
+        text = "yes" if v else "no"
+    elif isinstance(v, float):
         text = f"{v:.4g}"
     else:
         text = str(v)
-    cls = ""
+    cls = ' class="txt"' if col in ("reason", "worst_reason") else ""
     if col in ("worst_level", "status") and v in LEVEL_CSS:
         cls = f' class="lv-{v}"'
     return f'<td data-v="{html.escape(str(v))}"{cls}>{html.escape(text)}</td>'
@@ -352,23 +370,22 @@ def render_html(rows: list[dict], summary: dict) -> str:
     fail_html = ("<h2>Failed bags</h2>\n<ul id=\"failed\">" + "".join(
         f"<li><b>{html.escape(r['bag'])}</b> ({html.escape(str(r.get('path', '')))}): {html.escape(str(r.get('reason', '')))}</li>"
         for r in failed) + "</ul>") if failed else "<h2>Failed bags</h2>\n<p id=\"failed\">none</p>"
-    css = "".join(f".lv-{k}{{background:{c};color:#fff}}" for k, c in LEVEL_CSS.items())
+    css = "".join(f"tr td.lv-{k}{{background:{c};color:#fff}}" for k, c in LEVEL_CSS.items())
     s = summary
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>topometric fleet audit</title>
 <style>
-body{{font-family:sans-serif;margin:1.5em;font-size:14px}} table{{border-collapse:collapse}}
+body{{font-family:sans-serif;margin:1.5em;font-size:13px}} table{{border-collapse:collapse}}
 th,td{{border:1px solid #ccc;padding:3px 6px;text-align:right;white-space:nowrap}}
-td:nth-child(1),td:nth-child(3),td:nth-child(12){{text-align:left;white-space:normal;max-width:28em}}
+td.txt{{text-align:left;white-space:normal;min-width:16em;max-width:30em}} td.name{{text-align:left}}
 th{{background:#eee;cursor:pointer;user-select:none}} th:hover{{background:#ddd}}
 tr.st-failed td{{background:#fbe9e7}} {css}
 </style></head><body>
 <h1>topometric fleet audit</h1>
-<p id="summary">{s['bags']} bags: {s['done']} done, {s['cached']} cached, {s['failed']} failed; engine {html.escape(str(s['engine']))}
-{'' if s.get('workers') is None else f", {s['workers']} workers"}{'' if not s.get('address') else f", cluster {html.escape(str(s['address']))}"};
+<p id="summary">{s['bags']} bags: {s['done']} done, {s['cached']} cached, {s['failed']} failed; engine {html.escape(str(s['engine']))}{'' if s.get('workers') is None else f", {s['workers']} workers"}{'' if not s.get('address') else f", cluster {html.escape(str(s['address']))}"};
 segmentation {html.escape(str(s.get('segmentation')))}, window {s.get('window_size')} scans; config {str(s.get('config_digest'))[:12]};
 {html.escape(str(s.get('created')))}. Rates: rotation °/s, translation m/s; worst_time_s: since the bag's first window's start.
-Click a header to sort; a bag's name opens its metrics.png.</p>
+Click a header to sort (or open index.html#sort=COLUMN, #sort=-COLUMN descending); a bag's name opens its metrics.png.</p>
 <table id="fleet"><thead><tr>{head}</tr></thead>
 <tbody>
 {body}
@@ -387,6 +404,13 @@ function sortBy(col) {{
     return (typeof x === 'number' ? -1 : 1) * dir[col]; }});
   rows.forEach(function (r) {{ tb.appendChild(r); }});
 }}
+// index.html#sort=COLUMN (ascending) or #sort=-COLUMN (descending): a link that opens the table sorted
+(function () {{
+  var m = /sort=(-?)([a-z0-9_]+)/.exec(location.hash); if (!m) return;
+  var names = Array.from(document.querySelectorAll('#fleet th')).map(function (th) {{ return th.textContent; }});
+  var col = names.indexOf(m[2]); if (col < 0) return;
+  dir[col] = m[1] ? 1 : -1; sortBy(col);
+}})();
 </script>
 </body></html>
 """
