@@ -98,6 +98,8 @@ def bag_names(bags: list[Path]) -> list[str]:
 def bag_digest(path: str | Path) -> str:
     """sha256 over a bag's files (relative name, size, bytes), in name order: a changed byte is a new bag."""
     path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no bag at {path}")
     files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
     h = hashlib.sha256()
     for f in files:
