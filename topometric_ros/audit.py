@@ -156,6 +156,9 @@ def audit_bag(task: BagTask, weights: bytes | None = None) -> dict:
             config = replace(config, segmentation=replace(config.segmentation, weights=str(_weights_copy(weights, want))))
         elif file_sha256(weights_file(config)) != want:
             raise ValueError(f"{weights_file(config)} changed since the audit started (sha256 is not {want[:12]}…)")
+    # one bag per CPU: the bag's per-scan stages run one after the other (window.pipelined gives the same
+    # windows, in two threads; here the parallelism is across bags)
+    config = replace(config, window=replace(config.window, pipelined=False))
     with tempfile.TemporaryDirectory(prefix="topometric-audit-") as tmp:
         options = ReplayOptions(**task.options, plot=True, progress=False)
         res = replay(task.path, tmp, config, options)
