@@ -225,7 +225,7 @@ def _all(results, what: str) -> None:
     """Consume engine.run_tasks; the first failed job ends the experiment with its reason."""
     for item, _, error in results:
         if error is not None:
-            raise RuntimeError(f"{what} {item[1:] if what == 'job' else item[1:4]} failed: {error}")
+            raise RuntimeError(f"{what} {item[2:] if what == 'job' else item[1:4]} failed: {error}")
 
 
 def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool = True, engine: str = "ray",
