@@ -195,18 +195,35 @@ def _ray_cli() -> str | None:
 
 
 def _cluster_pids(port: int) -> list[int]:
-    """The processes of the Ray cluster whose GCS listens on ``port`` (their command lines name it)."""
-    needles = (f"127.0.0.1:{port}".encode(), f"--gcs_server_port={port}".encode(), f"--gcs-address=127.0.0.1:{port}".encode())
+    """The processes of the Ray cluster whose GCS listens on ``port``: an argument of their command line
+    names it (--gcs-address=HOST:PORT, --address=HOST:PORT, --gcs_server_port=PORT, --port=PORT)."""
     pids = []
     for d in Path("/proc").iterdir():
         if d.name.isdigit() and int(d.name) != os.getpid():
             try:
-                cmd = (d / "cmdline").read_bytes()
+                args = (d / "cmdline").read_bytes().decode(errors="replace").split("\0")
             except OSError:
                 continue
-            if any(n in cmd for n in needles):
+            if any(a.endswith(f":{port}") or a in (f"--gcs_server_port={port}", f"--port={port}") for a in args):
                 pids.append(int(d.name))
-    return pids
+    return pids + [c for p in pids for c in _descendants(p)]  # the raylets' agents (ray::DashboardAgent, ...)
+
+
+def _descendants(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
 
 
 @pytest.fixture
