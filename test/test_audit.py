@@ -84,6 +84,10 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
     assert [b.name for b in bags] == ["night_0", "night_1", "night_2", "night_3", "night_corrupt"]
     config = load_config(overrides={"segmentation.mode": "labels"})
     first = audit(bags, tmp_path, config, engine="local", progress=False)
+    with pytest.raises(FileNotFoundError, match="no rosbag2 bag under"):
+        find_bags([str(tmp_path)])  # the audit's own output (bags/*/diagnostics.mcap) is not a fleet
+    with pytest.raises(FileNotFoundError, match="no rosbag2 bag at"):
+        find_bags([str(fleet / "night_0" / "truth.json")])
     assert (first.summary["ran"], first.summary["done"], first.summary["failed"]) == (5, 4, 1)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")}
     again = audit(bags, tmp_path, config, engine="local", progress=False)

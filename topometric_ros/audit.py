@@ -54,6 +54,8 @@ NOT_IN_KEY = ("segmentation.weights", "window.pipelined")
 
 # ------------------------------------------------------------------ finding bags
 def _is_bag(p: Path) -> bool:
+    if (p / MANIFEST).is_file() or (p.parent / MANIFEST).is_file():
+        return False  # an audit's own output (its diagnostics.mcap), not a bag
     if p.is_file():
         return p.suffix in (".mcap", ".db3")
     return p.is_dir() and ((p / "metadata.yaml").is_file() or any(p.glob("*.mcap")) or any(p.glob("*.db3")))
@@ -73,10 +75,14 @@ def find_bags(args: Iterable[str]) -> list[Path]:
             if _is_bag(m):
                 out.append(m)
                 continue
-            found = [Path(root) for root, dirs, _ in sorted(os.walk(m)) if _is_bag(Path(root)) and not dirs.clear()]
-            if not found and m.is_dir():
-                raise FileNotFoundError(f"no rosbag2 bag under {m} (a bag is a folder with metadata.yaml or "
-                                        "*.mcap / *.db3, or such a file)")
+            found = []
+            for root, dirs, _ in os.walk(m):
+                if _is_bag(Path(root)):
+                    found.append(Path(root))
+                    dirs.clear()  # not into a bag's own folders
+            if not found:
+                raise FileNotFoundError(f"no rosbag2 bag {'under' if m.is_dir() else 'at'} {m} (a bag is a folder "
+                                        "with metadata.yaml or *.mcap / *.db3, or such a file)")
             out += sorted(found)
     seen, unique = set(), []
     for p in out:
