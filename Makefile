@@ -24,7 +24,8 @@ $(STAMP): setup.py setup.cfg
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; }
 	@# a headless browser for the fleet report's test (test_audit opens index.html); optional: the test skips without it
-	@command -v chromium >/dev/null 2>&1 || { \
+	@# (Debian only: Ubuntu's chromium package is a snap, which cannot read the test's temporary files)
+	@command -v chromium >/dev/null 2>&1 || ! grep -qx 'ID=debian' /etc/os-release 2>/dev/null || { \
 	  echo "installing chromium (headless: the audit report test)"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium >/dev/null; } || \
