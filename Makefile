@@ -23,6 +23,13 @@ $(STAMP): setup.py setup.cfg
 	  echo "installing libusb-1.0-0 (needed by open3d)"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; }
+	@# a headless browser for the fleet report's test (test_audit opens index.html); optional: the test skips without it
+	@# (Debian only: Ubuntu's chromium package is a snap, which cannot read the test's temporary files)
+	@command -v chromium >/dev/null 2>&1 || ! grep -qx 'ID=debian' /etc/os-release 2>/dev/null || { \
+	  echo "installing chromium (headless: the audit report test)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium >/dev/null; } || \
+	  echo "note: chromium not installable here; the index.html browser test will skip"; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0

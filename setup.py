@@ -32,6 +32,7 @@ setup(
         "mcap>=1.1",  # replay reads a truncated MCAP bag up to the break
         "onnx>=1.17,<2",  # segmentation: in-memory export of the checked weights (torch.onnx needs it)
         "onnxruntime>=1.20,<2",  # segmentation: default CPU backend (eager PyTorch is the fallback)
+        "ray>=2.40,<3",  # topometric audit / evaluate / alarms: tasks on a local Ray or a cluster (engine.py)
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap-ros2-support>=0.5",

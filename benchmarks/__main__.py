@@ -4,7 +4,7 @@
 import importlib
 import sys
 
-ALL = ["sim", "planes", "metrics", "baselines", "seg", "replay", "fuzz"]
+ALL = ["sim", "planes", "metrics", "baselines", "seg", "replay", "fuzz", "audit"]
 
 for name in sys.argv[1:] or ALL:
     print(f"== {name}")

@@ -17,7 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ROSDEP = {"numpy": "python3-numpy", "scipy": "python3-scipy", "numba": "python3-numba",
           "open3d-cpu": "python3-open3d-pip", "rosbags": "python3-rosbags-pip", "torch": "python3-torch",
           "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "pyyaml": "python3-yaml", "mcap": None,
-          "onnx": None, "onnxruntime": "python3-onnxruntime-pip"}
+          "onnx": None, "onnxruntime": "python3-onnxruntime-pip",
+          "ray": None}
 TEST_ROSDEP = {"pytest": "python3-pytest", "pytest-timeout": "python3-pytest-timeout",
                "hypothesis": "python3-hypothesis", "mcap-ros2-support": None, "evo": None,
                "kiss-icp": None}

@@ -101,6 +101,14 @@ def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | No
                                                            f"{defaults.segmentation.mode})"))
 
 
+def _add_engine_args(p: argparse.ArgumentParser) -> None:
+    """--engine, --workers, --address: where the jobs run (engine.run_tasks)."""
+    p.add_argument("--engine", default="ray", choices=("ray", "local"),
+                   help="ray: jobs as Ray tasks (a local Ray started on demand, or --address); local: in this process")
+    p.add_argument("--workers", type=int, default=2, help="CPUs of the local Ray started on demand")
+    p.add_argument("--address", default="", help="an existing Ray cluster, HOST:PORT (\"\": a local Ray)")
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from .replay import ReplayOptions, format_table, replay
 
@@ -111,6 +119,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
           + ("" if args.no_plot else ", metrics.png"))
     return 1 if res.summary["error"] or res.summary["no_scans"] else 0
+
+
+AUDIT_EXIT = "exit status: 0 every bag replayed, 1 one or more bags failed (named in the report), 2 bad arguments, " \
+             "130 interrupted (Ctrl-C)"
+
+
+def cmd_audit(args: argparse.Namespace) -> int:
+    from .audit import audit, find_bags, format_summary
+
+    bags = find_bags(args.bags)
+    if not bags:
+        print("error: no bag found", file=sys.stderr)
+        return 2
+    options = {k: v for k, v in (("points_topic", args.points_topic), ("odom_topic", args.odom_topic),
+                                 ("gt_topic", args.gt_topic)) if v}
+    try:
+        res = audit(bags, args.out, _monitor_config(args), engine=args.engine, workers=args.workers,
+                    address=args.address or None, options=options, force=args.force, progress=not args.quiet)
+    except KeyboardInterrupt:
+        print("audit interrupted: the bags finished so far are written (a rerun does only the rest)", file=sys.stderr)
+        return 130
+    print(format_summary(res))
+    return 1 if res.summary["failed"] else 0
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -131,7 +162,8 @@ def cmd_alarms(args: argparse.Namespace) -> int:
     from .experiments.alarms import SCALES, calibrate, format_calibration, format_detection, run_detection
 
     plan = {"rate": args.rate, "speeds": args.speeds, "estimates": args.estimates, "odometry": args.odometry,
-            "scales": args.scales or SCALES}
+            "scales": args.scales or SCALES, "engine": args.engine, "workers": args.workers,
+            "address": args.address or None}
     if args.sensors:
         plan["sensors"] = args.sensors
     if args.calibrate_rates:
@@ -206,7 +238,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if bad:
         print(f"error: unknown noise mode or label source: {', '.join(bad)}", file=sys.stderr)
         return 2
-    paths = run(spec, args.out, workers=args.workers)
+    paths = run(spec, args.out, workers=args.workers, engine=args.engine, address=args.address or None)
     print(Path(paths["report"]).read_text())
     print(f"wrote {args.out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s")
     return 0
@@ -403,6 +435,27 @@ def build_parser() -> argparse.ArgumentParser:
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
 
+    au = sub.add_parser("audit", help="many bags (a fleet's logs) through the monitor on Ray or in-process: "
+                                      "per-bag reports and OUT/fleet.csv, fleet.json, index.html",
+                        epilog=AUDIT_EXIT)
+    au.add_argument("bags", nargs="+", metavar="BAG",
+                    help="rosbag2 folders or .mcap files, folders of bags, or globs (quoted: 'logs/*/night_*')")
+    au.add_argument("--out", required=True, help="output folder: bags/<bag>/ reports, fleet.csv, fleet.json, index.html")
+    au.add_argument("--engine", default="ray", choices=("ray", "local"),
+                    help="ray: one Ray task per bag; local: one bag after another in this process, no Ray")
+    au.add_argument("--workers", type=int, default=2,
+                    help="CPUs of the local Ray started on demand (one bag per CPU); unused with --address")
+    au.add_argument("--address", default="", help="join an existing Ray cluster at HOST:PORT (started with `ray "
+                                                  "start --head`; or 'auto') instead of starting a local Ray")
+    au.add_argument("--force", action="store_true", help="replay every bag again (without it: cached results "
+                                                         "whose bag, config and weights digests are unchanged are kept)")
+    au.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": each bag's only one, else /points)")
+    au.add_argument("--odom-topic", default="", help="SLAM odometry topic (\"\": each bag's only one, else /odom)")
+    au.add_argument("--gt-topic", default="", help="ground-truth odometry for RPE (\"\": replay's default, /odom_gt)")
+    au.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_monitor_args(au)
+    au.set_defaults(func=cmd_audit)
+
     i = sub.add_parser("inspect", help="per-scan stages on a bag's clouds (no odometry needed): layout, grid, "
                                        "segmentation, planes; a PNG per scan and scans.csv")
     i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
@@ -442,6 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--sensors", type=_sensors, default=None,
                    help="sensors the bags cycle through (default: the split's own, held out between splits)")
     a.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_engine_args(a)
     _add_monitor_args(a, "labels")
     a.set_defaults(func=cmd_alarms)
 
@@ -462,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--frames", type=int, default=None, help="scans per trajectory (default: 300)")
     e.add_argument("--baseline-windows", type=int, default=None,
                    help="windows per trajectory and setting that also get MME/MPV/MOM (default: 8)")
-    e.add_argument("--workers", type=int, default=2, help="processes")
+    _add_engine_args(e)
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
     e.add_argument("--out", default="results", help="output directory; finished settings are reused")
     e.set_defaults(func=cmd_evaluate)

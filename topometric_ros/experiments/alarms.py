@@ -344,12 +344,35 @@ def _window_s(records: list[dict]) -> float:
 
 
 def _replay_split(out: Path, config: Config, split: str, scenes, frames, free_bags, free_frames, progress,
+                  engine: str = "local", workers: int = 2, address: str | None = None,
                   **plan) -> list[tuple[Run, list[dict], dict, dict | None]]:
-    runs = []
-    for run in plan_bags(scenes, frames, free_bags, free_frames, split=split, **plan):
-        windows, summary = replay_windows(run, out, config, progress)
-        runs.append((run, windows, summary, load_truth(out / "bags" / _name(run.sim))))
-    return runs
+    """Simulate (or reuse) the split's bags, then replay each run (replay_windows): both as tasks of
+    engine.run_tasks (``engine``, ``workers``, ``address``); the runs in plan order."""
+    from ..engine import run_tasks
+
+    runs = plan_bags(scenes, frames, free_bags, free_frames, split=split, **plan)
+    kw = dict(engine=engine, workers=workers, address=address, progress=progress)
+    sims = list({_name(r.sim): r.sim for r in runs}.values())  # a bag shared by two estimates: simulated once
+    for sim, _, error in run_tasks(_bag_task, [(sim, out / "bags") for sim in sims], desc="bags", **kw):
+        if error is not None:
+            raise RuntimeError(f"simulating {_name(sim[0])} failed: {error}")
+    done = {}
+    for (run, *_), result, error in run_tasks(_replay_task, [(run, out, config) for run in runs], desc="replays",
+                                              **kw):
+        if error is not None:
+            raise RuntimeError(f"replay of {run.name} failed: {error}")
+        done[id(run)] = result
+    return [(run, *done[id(run)], load_truth(out / "bags" / _name(run.sim))) for run in runs]
+
+
+def _bag_task(job: tuple) -> Path:
+    sim, bags = job
+    return _bag(sim, bags, progress=False)
+
+
+def _replay_task(job: tuple) -> tuple[list[dict], dict]:
+    run, out, config = job
+    return replay_windows(run, out, config, progress=False)
 
 
 def run_detection(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
@@ -363,7 +386,8 @@ def run_detection(out: str | Path, config: Config, scenes: list[str], frames: in
     table = score(runs, within)
     table.update(split=split, bags_from=split_description(split), window_size=config.window.size,
                  health=asdict(config.health), segmentation=config.segmentation.mode,
-                 plan={k: list(v) if isinstance(v, tuple) else v for k, v in plan.items()})
+                 plan={k: list(v) if isinstance(v, tuple) else v for k, v in plan.items()
+                       if k not in ("engine", "workers", "address")})
     _write(out, table)
     return table
 

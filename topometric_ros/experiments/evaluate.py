@@ -9,7 +9,8 @@ window; MME, MPV and MOM (which need every point) on a seeded random subset of w
 metric with RPE (Pearson, Spearman, Kendall) and Multi-relation(PNE, CPV, RPE) are computed per setting.
 
 Work is split into jobs written as CSV files under OUT/runs/: a finished job is never recomputed (resumable),
-and jobs run in a process pool.
+and jobs run on engine.run_tasks (Ray tasks: a local Ray with ``workers`` CPUs or a cluster at ``address``;
+or ``engine="local"``, one after another in this process).
 """
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ import hashlib
 import json
 import pickle
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from pathlib import Path
@@ -145,7 +145,6 @@ def _baseline_windows(spec: ExperimentSpec, scene: str, traj: int, win: int, noi
 def _run_job(out: Path, spec: ExperimentSpec, source: str, scene: str, traj: int, win: int, noise: str,
              scale: float) -> Path:
     """Score every window of one trajectory under one setting; writes OUT/runs/<job>.csv."""
-    _single_thread()
     path = out / "runs" / f"{_job_name(source, scene, traj, win, noise, scale)}.csv"
     if not path.exists():
         rows = (_baseline_rows if source == BASELINE_JOB else _plane_rows)(out, spec, source, scene, traj, win, noise,
@@ -193,14 +192,6 @@ def _baseline_rows(out: Path, spec: ExperimentSpec, _source: str, scene: str, tr
     return rows
 
 
-def _single_thread() -> None:
-    import open3d as o3d
-    import torch
-
-    torch.set_num_threads(1)
-    o3d.utility.set_max_threads(1)
-
-
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
     data = np.genfromtxt(path, delimiter=",", names=True, dtype=float)
     return {k: np.atleast_1d(data[k]) for k in data.dtype.names}
@@ -222,9 +213,26 @@ def jobs(spec: ExperimentSpec) -> list[tuple]:
     return out
 
 
-def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool = True) -> dict:
-    """Run (or resume) the experiment into ``out``; returns the paths of what it wrote."""
-    from tqdm import tqdm
+def _cache_task(job: tuple) -> Path:
+    return _scan_cache(*job)
+
+
+def _job_task(job: tuple) -> Path:
+    return _run_job(*job)
+
+
+def _all(results, what: str) -> None:
+    """Consume engine.run_tasks; the first failed job ends the experiment with its reason."""
+    for item, _, error in results:
+        if error is not None:
+            raise RuntimeError(f"{what} {item[2:] if what == 'job' else item[1:4]} failed: {error}")
+
+
+def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool = True, engine: str = "ray",
+        address: str | None = None) -> dict:
+    """Run (or resume) the experiment into ``out``; returns the paths of what it wrote. The jobs run on
+    engine.run_tasks (``engine``, ``workers``, ``address``)."""
+    from ..engine import run_tasks
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -232,14 +240,11 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
     started = time.perf_counter()
     todo = [j for j in jobs(spec) if not (out / "runs" / f"{_job_name(*j)}.csv").exists()]
     caches = sorted({(j[1], j[2], j[0]) for j in todo if j[0] != BASELINE_JOB})
-    todo.sort(key=lambda j: j[0] != BASELINE_JOB)  # the long baseline jobs first, so the pool ends evenly
-    with ProcessPoolExecutor(max_workers=workers, initializer=_single_thread) as pool:
-        pending = [pool.submit(_scan_cache, out, scene, traj, labels, spec) for scene, traj, labels in caches]
-        for f in tqdm(as_completed(pending), total=len(pending), desc="scans (segment + planes)", disable=not progress):
-            f.result()
-        pending = [pool.submit(_run_job, out, spec, *j) for j in todo]
-        for f in tqdm(as_completed(pending), total=len(pending), desc="settings", disable=not progress):
-            f.result()
+    todo.sort(key=lambda j: j[0] != BASELINE_JOB)  # the long baseline jobs first, so the workers end evenly
+    kw = dict(engine=engine, workers=workers, address=address, progress=progress)
+    _all(run_tasks(_cache_task, [(out, scene, traj, labels, spec) for scene, traj, labels in caches],
+                   desc="scans (segment + planes)", **kw), "scan cache")
+    _all(run_tasks(_job_task, [(out, spec, *j) for j in todo], desc="settings", **kw), "job")
     paths = write_tables(spec, out)
     paths["elapsed_s"] = round(time.perf_counter() - started, 1)
     return paths

@@ -1,0 +1,276 @@
+"""`topometric audit`: many bags on a real local Ray (2 workers) and in-process, against single replays; a corrupt
+bag, a killed worker, the cache, the fleet report in a real headless Chromium, a two-node Ray cluster."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from topometric_ros.audit import COLUMNS, MANIFEST, audit, find_bags
+from topometric_ros.cli import main
+from topometric_ros.config import load_config
+from topometric_ros.engine import ensure_ray
+from topometric_ros.replay import ReplayOptions, replay
+from topometric_ros.sim.drift import DriftSpec
+from topometric_ros.sim.writer import SimConfig, simulate
+
+LABELS = ["--segmentation", "labels"]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    """Four short office bags (15 scans, 3 windows of 5; one with per-pose drift noise: WARN windows) and a corrupt one (an MCAP file of
+    garbage behind a real metadata.yaml)."""
+    root = tmp_path_factory.mktemp("fleet")
+    for i in range(4):
+        cfg = SimConfig(scene="office1", frames=15, rate=5.0, speed=0.8, seed=100 + i,
+                        drift=DriftSpec.parse("rt:2.0" if i == 1 else "none", "noise"))
+        simulate(cfg, root / "good" / f"night_{i}", progress=False)
+    bad = root / "good" / "night_corrupt"
+    bad.mkdir()
+    shutil.copy(root / "good" / "night_0" / "metadata.yaml", bad)
+    (bad / "night_0.mcap").write_bytes(os.urandom(50_000))
+    return root / "good"
+
+
+def _windows(path: Path) -> list[dict]:
+    """A windows.json's window records without the timings (ms_*: wall-clock, differ between any two runs)."""
+    doc = json.loads(Path(path).read_text())
+    return [{k: v for k, v in r.items() if not k.startswith("ms_")} for r in doc["windows"]]
+
+
+def _good(fleet: Path) -> list[Path]:
+    return sorted(p for p in fleet.iterdir() if p.name != "night_corrupt")
+
+
+def test_ray_audit_equals_single_replays_and_names_the_corrupt_bag(fleet, tmp_path, capsys):
+    out = tmp_path / "audit"
+    assert main(["audit", str(fleet / "night_*"), "--out", str(out), "--workers", "2", "--quiet", *LABELS]) == 1
+    printed = capsys.readouterr().out
+    assert "audit: 5 bags: 4 done, 0 cached, 1 failed" in printed and "engine ray, 2 workers" in printed
+    assert "FAILED night_corrupt: " in printed and f"report: {out / 'index.html'}" in printed
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    for bag in _good(fleet):
+        single = replay(bag, tmp_path / "single" / bag.name, config, ReplayOptions(progress=False, plot=False))
+        assert single.windows and not single.summary["error"]
+        assert _windows(out / "bags" / bag.name / "windows.json") == _windows(tmp_path / "single" / bag.name / "windows.json")
+        for name in ("windows.csv", "metrics.png", "diagnostics.mcap", MANIFEST):
+            assert (out / "bags" / bag.name / name).stat().st_size > 0
+    doc = json.loads((out / "fleet.json").read_text())
+    assert doc["failed"] == [{"bag": "night_corrupt", "path": str(fleet / "night_corrupt"),
+                              "reason": doc["failed"][0]["reason"]}]
+    assert "PointCloud2" in doc["failed"][0]["reason"] and "damaged bag" in doc["failed"][0]["reason"]
+    rows = {r["bag"]: r for r in doc["bags"]}
+    drift = rows["night_1"]
+    assert drift["status"] == "ok" and drift["scans"] == 15 and drift["windows"] == 3
+    assert drift["worst_level"] in ("WARN", "ERROR") and drift["episodes_alarmed"] >= 1 and drift["worst_reason"]
+    assert drift["rot_rate_p99"] >= drift["rot_rate_p50"] > 0
+    assert {r["worker"].split(" node ")[0] for r in doc["bags"] if r["status"] == "ok"} != {f"{socket.gethostname()}:{os.getpid()}"}
+    csv_lines = (out / "fleet.csv").read_text().splitlines()
+    assert csv_lines[0].split(",") == list(COLUMNS) and len(csv_lines) == 6
+
+
+def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_path):
+    bags = find_bags([str(fleet)])
+    assert [b.name for b in bags] == ["night_0", "night_1", "night_2", "night_3", "night_corrupt"]
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    first = audit(bags, tmp_path, config, engine="local", progress=False)
+    with pytest.raises(FileNotFoundError, match="no rosbag2 bag under"):
+        find_bags([str(tmp_path)])  # the audit's own output (bags/*/diagnostics.mcap) is not a fleet
+    with pytest.raises(FileNotFoundError, match="no rosbag2 bag at"):
+        find_bags([str(fleet / "night_0" / "truth.json")])
+    assert (first.summary["ran"], first.summary["done"], first.summary["failed"]) == (5, 4, 1)
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")}
+    again = audit(bags, tmp_path, config, engine="local", progress=False)
+    assert (again.summary["ran"], again.summary["cached"], again.summary["failed"]) == (0, 5, 1)
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")} == stamps  # nothing rewritten
+    assert [r["cached"] for r in again.rows] == [True] * 5
+    assert [r["status"] for r in again.rows] == [r["status"] for r in first.rows]
+    changed = load_config(overrides={"segmentation.mode": "labels", "health.warn_sigma": 5.5})
+    third = audit(bags, tmp_path, changed, engine="local", progress=False)
+    assert (third.summary["ran"], third.summary["cached"]) == (5, 0)
+    # a changed byte of one bag: only that bag again
+    truth = fleet / "night_2" / "truth.json"
+    keep = truth.read_bytes()
+    try:
+        truth.write_bytes(keep.replace(b"{", b"{ ", 1))
+        fourth = audit(bags, tmp_path, changed, engine="local", progress=False)
+        assert fourth.summary["ran"] == 1 and [r["bag"] for r in fourth.rows if not r["cached"]] == ["night_2"]
+    finally:
+        truth.write_bytes(keep)
+
+
+def _task_pids() -> list[int]:
+    """Ray worker processes running an engine task right now (Ray titles them ray::<function>)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if (d / "cmdline").read_bytes().startswith(b"ray::_call_remote"):
+                    pids.append(int(d.name))
+            except OSError:
+                pass
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the Ray worker's pid in /proc (Linux)")
+def test_a_worker_killed_mid_run_fails_its_bag_only_and_a_rerun_completes_it(fleet, tmp_path):
+    bags = _good(fleet)
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    # Ray started from this (main) thread: Ray's own processes die with the thread that started them
+    ensure_ray(workers=2)
+    result = {}
+    t = threading.Thread(target=lambda: result.update(
+        res=audit(bags, tmp_path, config, engine="ray", workers=2, progress=False)))
+    t.start()
+    killed, deadline = None, time.monotonic() + 120
+    while killed is None and time.monotonic() < deadline and t.is_alive():
+        pids = _task_pids()
+        if pids:
+            time.sleep(0.5)  # mid-task: it has started reading the bag
+            killed = pids[0]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.05)
+    t.join(timeout=300)
+    assert killed is not None, "no Ray task process seen"
+    rows = result["res"].rows
+    failed = [r for r in rows if r["status"] == "failed"]
+    assert len(failed) == 1 and "Worker" in failed[0]["reason"] and "died" in failed[0]["reason"].lower(), failed
+    assert all((tmp_path / "bags" / r["bag"] / "windows.json").is_file() for r in rows if r["status"] == "ok")
+    assert len([r for r in rows if r["status"] == "ok"]) == len(bags) - 1
+    report = json.loads((tmp_path / "fleet.json").read_text())
+    assert [f["bag"] for f in report["failed"]] == [failed[0]["bag"]]
+    assert failed[0]["bag"] in (tmp_path / "index.html").read_text()
+    rerun = audit(bags, tmp_path, config, engine="ray", workers=2, progress=False)
+    assert (rerun.summary["ran"], rerun.summary["cached"], rerun.summary["failed"]) == (1, len(bags) - 1, 0)
+    assert [r["bag"] for r in rerun.rows if not r["cached"]] == [failed[0]["bag"]]
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SNAP = CHROMIUM is not None and os.path.realpath(CHROMIUM).startswith("/snap/")
+
+
+def _chromium(profile: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                           f"--user-data-dir={profile}", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (Debian package chromium; make install adds "
+                                              "it on Debian where apt-get can)")
+@pytest.mark.skipif(SNAP, reason="chromium is a snap here (Ubuntu): confined, it cannot read pytest's temporary files")
+def test_index_html_in_headless_chromium_shows_every_bag_and_sorts(fleet, tmp_path):
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    res = audit(find_bags([str(fleet)]), tmp_path, config, engine="local", progress=False)
+    page = tmp_path / "index.html"
+    shot = tmp_path / "fleet.png"
+    profile = tmp_path / ".chromium"
+    r = _chromium(profile, f"--screenshot={shot}", "--window-size=1600,700", "--hide-scrollbars", f"file://{page}")
+    assert shot.is_file() and shot.stat().st_size > 20_000, r.stderr[-2000:]
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    dom = _chromium(profile, "--dump-dom", f"file://{page}").stdout
+    for row in res.rows:
+        assert f'data-v="{row["bag"]}"' in dom
+        if row["status"] == "ok":
+            assert f'href="bags/{row["bag"]}/metrics.png"' in dom and (tmp_path / row["metrics_png"]).is_file()
+    assert "night_corrupt" in dom.split('id="failed"')[1]
+    order = lambda html: sorted(("night_0", "night_1", "night_2", "night_3"), key=html.index)  # noqa: E731
+    ok = [r for r in res.rows if r["status"] == "ok"]
+    worst_first = [r["bag"] for r in sorted(ok, key=lambda r: -r["rot_rate_p99"])]
+    sorted_dom = _chromium(profile, "--dump-dom", f"file://{page}#sort=-rot_rate_p99").stdout
+    tbody = sorted_dom.split("<tbody>")[1]
+    assert order(tbody) == worst_first  # the page's own script sorted the table (numbers as numbers)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ray_cli() -> str | None:
+    return shutil.which("ray", path=str(Path(sys.executable).parent))
+
+
+def _cluster_pids(port: int) -> list[int]:
+    """The processes of the Ray cluster whose GCS listens on ``port``: an argument of their command line
+    names it (--gcs-address=HOST:PORT, --address=HOST:PORT, --gcs_server_port=PORT, --port=PORT)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit() and int(d.name) != os.getpid():
+            try:
+                args = (d / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            except OSError:
+                continue
+            if any(a.endswith(f":{port}") or a in (f"--gcs_server_port={port}", f"--port={port}") for a in args):
+                pids.append(int(d.name))
+    return pids + [c for p in pids for c in _descendants(p)]  # the raylets' agents (ray::DashboardAgent, ...)
+
+
+def _descendants(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+@pytest.fixture
+def two_node_cluster(tmp_path):
+    """A head and a worker node started with `ray start` on this machine (1 CPU each), token auth on the
+    loopback interface; torn down by ending this cluster's own processes (found by its port), not `ray stop`,
+    which would end every Ray on the machine."""
+    ray = _ray_cli()
+    if ray is None:
+        pytest.skip("the ray command is not installed beside this Python")
+    port = _free_port()
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0"}
+    head = subprocess.run([ray, "start", "--head", f"--port={port}", "--num-cpus=1", "--include-dashboard=false",
+                           "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    try:
+        if head.returncode != 0:
+            pytest.skip(f"`ray start --head` failed here: {head.stderr.strip().splitlines()[-1:]}")
+        worker = subprocess.run([ray, "start", f"--address=127.0.0.1:{port}", "--num-cpus=1",
+                                 "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
+                                capture_output=True, text=True, env=env, timeout=120)
+        if worker.returncode != 0:
+            pytest.skip(f"`ray start --address` (second node) failed here: {worker.stderr.strip().splitlines()[-1:]}")
+        yield f"127.0.0.1:{port}", env
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for pid in _cluster_pids(port):
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+            time.sleep(1.0)
+
+
+def test_audit_on_a_two_node_cluster_through_address(fleet, tmp_path, two_node_cluster):
+    address, env = two_node_cluster
+    out = tmp_path / "audit"
+    r = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "audit", *map(str, _good(fleet)), "--out", str(out),
+                        "--address", address, "--quiet", *LABELS], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr[-3000:]
+    assert f"audit: 4 bags: 4 done, 0 cached, 0 failed" in r.stdout and f"cluster {address}" in r.stdout
+    rows = json.loads((out / "fleet.json").read_text())["bags"]
+    nodes = {row["worker"].split(" node ")[1] for row in rows}
+    assert len(nodes) == 2, rows  # both nodes ran bags (1 CPU each, 4 tasks)

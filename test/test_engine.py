@@ -1,0 +1,61 @@
+"""engine.run_tasks on a real local Ray (2 workers) and in-process: results, failures named, shared values (the
+segmentation weights shipped once and checked by digest in the worker)."""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+
+import pytest
+
+from topometric_ros.audit import BagTask, audit_bag, bag_digest, config_digest, file_sha256, weights_file
+from topometric_ros.config import load_config
+from topometric_ros.engine import run_tasks
+from topometric_ros.replay import ReplayOptions, replay
+from topometric_ros.sim.drift import DriftSpec
+from topometric_ros.sim.writer import SimConfig, simulate
+
+
+@pytest.fixture(scope="module")
+def short_bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("engine") / "office_10"
+    simulate(SimConfig(scene="office1", frames=10, rate=5.0, speed=0.8, seed=7, drift=DriftSpec.parse("none")), path,
+             progress=False)
+    return path
+
+
+def test_local_and_ray_give_the_same_results_and_name_each_failure(short_bag, tmp_path):
+    items = [short_bag, tmp_path / "missing", short_bag / "metadata.yaml"]
+    local = list(run_tasks(bag_digest, items, engine="local", progress=False))
+    assert [i for i, _, _ in local] == items  # in order, in this process
+    assert local[0][1] == bag_digest(short_bag) and local[0][2] is None
+    assert local[1][1] is None and local[1][2].startswith("FileNotFoundError: ")
+    on_ray = {i: (r, e) for i, r, e in run_tasks(bag_digest, items, engine="ray", workers=2, progress=False)}
+    assert on_ray == {i: (r, e) for i, r, e in local}
+    with pytest.raises(ValueError, match="engine must be one of ray, local"):
+        list(run_tasks(bag_digest, items, engine="dask"))
+
+
+def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped_network(short_bag, tmp_path):
+    config = load_config(overrides={"segmentation.mode": "network"})
+    weights = weights_file(config).read_bytes()
+    key = {"bag": bag_digest(short_bag), "config": config_digest(config), "weights": file_sha256(weights_file(config))}
+    task = BagTask(str(short_bag), short_bag.name, config, key)
+    ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
+                                      shared={"weights": weights})
+    assert error is None, error
+    assert result["row"]["status"] == "ok" and result["row"]["scans"] == 10
+    assert int(result["row"]["worker"].split(" ")[0].split(":")[1]) != os.getpid()  # ran in a Ray worker
+    single = replay(short_bag, tmp_path / "single", config, ReplayOptions(progress=False, plot=False))
+    strip = lambda recs: [{k: v for k, v in r.items() if not k.startswith("ms_")} for r in recs]  # noqa: E731
+    shipped = json.loads(result["files"]["windows.json"])
+    assert strip(shipped["windows"]) == strip(json.loads((tmp_path / "single" / "windows.json").read_text())["windows"])
+    assert shipped["summary"]["config"]["segmentation.weights"].endswith(f"{key['weights']}/rangenet.pt")
+    # other bytes under the same digest: the worker refuses them, the task fails with the reason
+    ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
+                                      shared={"weights": weights[:-1] + bytes([weights[-1] ^ 1])})
+    assert result is None and "do not hash to" in error
+    # in-process: the file itself, its digest checked
+    bad = replace(task, key={**key, "weights": "0" * 64})
+    ((_, result, error),) = run_tasks(audit_bag, [bad], engine="local", progress=False)
+    assert result is None and "changed since the audit started" in error
