@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import time
 from pathlib import Path
@@ -79,12 +80,12 @@ def main(bags: int = 40, frames: int = 20, repeats: int = 1, segmentation: str =
             walls[variant].append(res.summary["wall_s"])
             print(f"  {variant:6s} {res.summary['wall_s']:7.1f} s  (load {os.getloadavg()[0]:.1f})", flush=True)
     engine.shutdown()
-    # every result identical to a single replay of that bag
+    # every result identical to a single replay of that bag, made now with this config (never a stale one)
     same = 0
+    shutil.rmtree(root / "single", ignore_errors=True)
     for p in paths:
         single = root / "single" / p.name
-        if not (single / "windows.json").is_file():
-            replay(p, single, config, ReplayOptions(progress=False, plot=False))
+        replay(p, single, config, ReplayOptions(progress=False, plot=False))
         ref = _windows(single / "windows.json")
         if all(_windows(root / v / "bags" / p.name / "windows.json") == ref for v in walls):
             same += 1

@@ -136,10 +136,11 @@ def test_a_worker_killed_mid_run_fails_its_bag_only_and_a_rerun_completes_it(fle
     while killed is None and time.monotonic() < deadline and t.is_alive():
         pids = _task_pids()
         if pids:
-            time.sleep(0.5)  # mid-task: it has started reading the bag
-            killed = pids[0]
-            os.kill(killed, signal.SIGKILL)
-        time.sleep(0.05)
+            time.sleep(0.1)  # mid-task: it has started reading the bag ...
+            if pids[0] in _task_pids():  # ... and not yet finished it (a bag takes about a second)
+                killed = pids[0]
+                os.kill(killed, signal.SIGKILL)
+        time.sleep(0.02)
     t.join(timeout=300)
     assert killed is not None, "no Ray task process seen"
     rows = result["res"].rows
