@@ -109,13 +109,25 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
         truth.write_bytes(keep)
 
 
+def _descends_from_us(pid: int) -> bool:
+    """``pid`` is a descendant of this test process (our Ray's workers, not another Ray on the machine)."""
+    while pid > 1:
+        try:
+            pid = int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            return False
+        if pid == os.getpid():
+            return True
+    return False
+
+
 def _task_pids() -> list[int]:
-    """Ray worker processes running an engine task right now (Ray titles them ray::<function>)."""
+    """Our Ray's worker processes running an engine task right now (Ray titles them ray::<function>)."""
     pids = []
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
             try:
-                if (d / "cmdline").read_bytes().startswith(b"ray::_call_remote"):
+                if (d / "cmdline").read_bytes().startswith(b"ray::_call_remote") and _descends_from_us(int(d.name)):
                     pids.append(int(d.name))
             except OSError:
                 pass
