@@ -43,10 +43,10 @@ def _clouds(name: str) -> list:
     return out
 
 
-def _steps(msg, traj, lift, config, segmenter) -> dict[str, float]:
+def _steps(msg, traj, lift, config, segmenter, model) -> dict[str, float]:
     """ms of each per-scan step for one cloud (pose and sweep motion from the true trajectory)."""
     from topometric_ros.cloud import read_scan
-    from topometric_ros.deskew import sweep_motion
+    from topometric_ros.deskew import sweep_motion, sweep_span
     from topometric_ros.pipeline import plane_scan, segment_scan
     from topometric_ros.window import Frame
 
@@ -54,9 +54,13 @@ def _steps(msg, traj, lift, config, segmenter) -> dict[str, float]:
     scan = read_scan(msg)
     read = 1000 * (time.perf_counter() - t)
     motion = None
-    if scan.time is not None:
-        motion = sweep_motion(lambda s: traj.poses_at(np.array([s]))[0] @ lift, scan.stamp,
-                              float(scan.time.min()), float(scan.time.max()))
+    if scan.time is not None:  # per-point times, else the azimuth's (as Monitor._sweep decides)
+        span, period, stamp_at = (float(scan.time.min()), float(scan.time.max())), 0.1, "first"
+    elif model.pattern != "non_repetitive":
+        period, stamp_at = model.period_s, model.layout.stamp
+        span = sweep_span(period, stamp_at)
+    if scan.time is not None or model.pattern != "non_repetitive":
+        motion = sweep_motion(lambda s: traj.poses_at(np.array([s]))[0] @ lift, scan.stamp, *span, period, stamp_at)
     frame = Frame(scan.points, np.eye(4), scan.stamp, None, scan.beam, scan.intensity, scan.time, scan.columns,
                   motion)
     seg = segment_scan(frame, config, segmenter)
@@ -69,7 +73,7 @@ def _steps(msg, traj, lift, config, segmenter) -> dict[str, float]:
 def main() -> None:
     from topometric_ros.config import Config
     from topometric_ros.pipeline import default_segmenter
-    from topometric_ros.sensors import SENSORS
+    from topometric_ros.sensors import SENSORS, sensor
 
     single_core()
     config = Config()
@@ -79,8 +83,8 @@ def main() -> None:
     for name in names:
         clouds = _clouds(name)
         for msg, traj, lift in clouds[:1]:
-            _steps(msg, traj, lift, config, segmenter)  # warm-up: the ONNX export for this image shape
-        samples = [_steps(msg, traj, lift, config, segmenter) for _ in range(REPEATS) for msg, traj, lift in clouds]
+            _steps(msg, traj, lift, config, segmenter, sensor(name))  # warm-up: the ONNX export for this image shape
+        samples = [_steps(msg, traj, lift, config, segmenter, sensor(name)) for _ in range(REPEATS) for msg, traj, lift in clouds]
         med = {k: float(np.median([s[k] for s in samples])) for k in samples[0]}
         results[name] = {**{f"{k}_ms": round(v, 2) for k, v in med.items()}, "scans_per_s": round(1000 / med["total"], 1),
                          "points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}

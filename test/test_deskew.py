@@ -38,6 +38,9 @@ def test_no_motion_is_the_identity_and_a_missing_pose_gives_none():
     still = sweep_motion(lambda t: np.eye(4), 5.0, -0.1, 0.0, stamp_at="last")
     np.testing.assert_allclose(deskew(pts, np.full(100, -0.05), still), pts, atol=1e-6)
     assert sweep_motion(lambda t: None if t > 5.05 else np.eye(4), 5.0, 0.0, 0.1) is None
+    # a sweep of zero length (every per-point time at the stamp): nothing to move, no NaN
+    moving = sweep_motion(lambda t: geometry.make_pose(np.eye(3), [t, 0, 0]), 5.0, 0.0, 0.0)
+    np.testing.assert_allclose(deskew(pts, np.zeros(100), moving), pts, atol=1e-6)
 
 
 def test_azimuth_times_follow_a_clockwise_sweep_from_the_first_point():

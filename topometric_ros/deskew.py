@@ -71,7 +71,8 @@ def deskew(points: np.ndarray, times: np.ndarray, motion: SweepMotion) -> np.nda
     the end knots)."""
     t = np.clip(np.asarray(times, np.float64), motion.times[0], motion.times[-1])
     k = np.clip(np.searchsorted(motion.times, t, "right") - 1, 0, len(motion.times) - 2)
-    a = (t - motion.times[k]) / (motion.times[k + 1] - motion.times[k])
+    dt = motion.times[k + 1] - motion.times[k]
+    a = np.divide(t - motion.times[k], dt, out=np.zeros_like(t), where=dt > 0)  # knots of a zero-length sweep
     b = 1.0 - a
     p = np.asarray(points, np.float64)
     out = np.empty_like(p)
