@@ -154,7 +154,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     print("  ".join(f"{c:>10s}" for c in cols))
     for r in rows:
         print("  ".join(f"{str(r.get(c, '')):>10s}" for c in cols) + (f"  ERROR {r['error']}" if "error" in r else ""))
-    print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_<k>.png per scan"))
+    print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_NNNN.png per scan"))
     return 1 if rows and all("error" in r for r in rows) else 0
 
 
@@ -463,7 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one)")
     i.add_argument("--every", type=int, default=1, help="every n-th cloud")
     i.add_argument("--limit", type=int, default=10, help="at most this many clouds")
-    i.add_argument("--no-plot", action="store_true", help="no scan_<k>.png")
+    i.add_argument("--no-plot", action="store_true", help="no scan_NNNN.png")
     _add_monitor_args(i)
     i.set_defaults(func=cmd_inspect)
 

@@ -37,7 +37,7 @@ def cloud_topic(path: str | Path, topic: str = "") -> str:
 
 def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None, topic: str = "",
                 every: int = 1, limit: int = 10, segmenter=None, plot: bool = True) -> list[dict]:
-    """Run grid + segmentation + planes on clouds of ``path`` and write OUT/scans.csv and OUT/scan_<k>.png.
+    """Run grid + segmentation + planes on clouds of ``path`` and write OUT/scans.csv and OUT/scan_NNNN.png.
     Returns the CSV rows (one per cloud; a cloud that cannot be read gets its error)."""
     config = config or Config()
     out = Path(out)
