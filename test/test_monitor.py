@@ -266,13 +266,15 @@ def split_floor_scan(delay=0.0):
 
 @pytest.mark.parametrize("stages", [None, split_floor_scan()])
 def test_live_close_drains_the_queue_and_stops_the_threads(stages):
-    m = (Monitor(config(), floor_scan, floor_window, live=True) if stages is None
-         else Monitor(config(), None, floor_window, live=True, stages=stages))
+    cfg = config(**{"window.queue_size": 16})  # room for all 9: none dropped however slowly the worker starts
+    m = (Monitor(cfg, floor_scan, floor_window, live=True) if stages is None
+         else Monitor(cfg, None, floor_window, live=True, stages=stages))
     feed(m, 100.0 + np.arange(9) / 5.0)
     assert m.flush(timeout=10)
     workers = list(m._threads)
     assert len(workers) == (1 if stages is None else 2) and all(w.is_alive() for w in workers)
     m.close()
+    assert m.counters["dropped_queue_full"] == 0
     assert m.counters["scans_processed"] == 9 and m.counters["windows"] == 3
     assert not any(w.is_alive() for w in workers)
 
