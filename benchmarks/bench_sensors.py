@@ -46,21 +46,16 @@ def _clouds(name: str) -> list:
 def _steps(msg, traj, lift, config, segmenter, model) -> dict[str, float]:
     """ms of each per-scan step for one cloud (pose and sweep motion from the true trajectory)."""
     from topometric_ros.cloud import read_scan
-    from topometric_ros.deskew import sweep_motion, sweep_span
+    from topometric_ros.deskew import sweep_motion, sweep_to_deskew
     from topometric_ros.pipeline import plane_scan, segment_scan
     from topometric_ros.window import Frame
 
     t = time.perf_counter()
     scan = read_scan(msg)
     read = 1000 * (time.perf_counter() - t)
-    motion = None
-    if scan.time is not None:  # per-point times, else the azimuth's (as Monitor._sweep decides)
-        span, period, stamp_at = (float(scan.time.min()), float(scan.time.max())), 0.1, "first"
-    elif model.pattern != "non_repetitive":
-        period, stamp_at = model.period_s, model.layout.stamp
-        span = sweep_span(period, stamp_at)
-    if scan.time is not None or model.pattern != "non_repetitive":
-        motion = sweep_motion(lambda s: traj.poses_at(np.array([s]))[0] @ lift, scan.stamp, *span, period, stamp_at)
+    motion, sweep = None, sweep_to_deskew(scan.time, scan.layout, model, config.sensor.deskew)  # as the monitor
+    if sweep is not None:
+        motion = sweep_motion(lambda s: traj.poses_at(np.array([s]))[0] @ lift, scan.stamp, *sweep)
     frame = Frame(scan.points, np.eye(4), scan.stamp, None, scan.beam, scan.intensity, scan.time, scan.columns,
                   motion)
     seg = segment_scan(frame, config, segmenter)
@@ -81,10 +76,10 @@ def main() -> None:
     names = [n for n in os.environ.get("TOPOMETRIC_BENCH_SENSORS", ",".join(SENSORS)).split(",") if n]
     results = {}
     for name in names:
-        clouds = _clouds(name)
+        clouds, model = _clouds(name), sensor(name)
         for msg, traj, lift in clouds[:1]:
-            _steps(msg, traj, lift, config, segmenter, sensor(name))  # warm-up: the ONNX export for this image shape
-        samples = [_steps(msg, traj, lift, config, segmenter, sensor(name)) for _ in range(REPEATS) for msg, traj, lift in clouds]
+            _steps(msg, traj, lift, config, segmenter, model)  # warm-up: the ONNX export for this image shape
+        samples = [_steps(msg, traj, lift, config, segmenter, model) for _ in range(REPEATS) for msg, traj, lift in clouds]
         med = {k: float(np.median([s[k] for s in samples])) for k in samples[0]}
         results[name] = {**{f"{k}_ms": round(v, 2) for k, v in med.items()}, "scans_per_s": round(1000 / med["total"], 1),
                          "points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}

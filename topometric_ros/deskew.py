@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from . import geometry
+from .sensors import LAYOUTS
 
 KNOTS = 17  # poses sampled across a sweep; between them the motion is interpolated linearly (rotation vector)
 
@@ -41,6 +42,25 @@ def sweep_span(period_s: float, stamp_at: str) -> tuple[float, float]:
     """(t_min, t_max) s of a sweep relative to its header stamp: [0, T] when the stamp is the first point's
     time, [-T, 0] when it is the last one's."""
     return (-period_s, 0.0) if stamp_at == "last" else (0.0, period_s)
+
+
+def sweep_to_deskew(time: np.ndarray | None, layout: str, model, mode: str,
+                    rate_hz: float = 0.0) -> tuple[float, float, float, str] | None:
+    """(t_min, t_max, period_s, stamp_at) of the sweep to deskew by ``mode`` (config sensor.deskew), or None:
+    per-point times (s, relative to the stamp) when the cloud has them; else azimuth-derived times for a
+    spinning sensor whose driver (``layout`` or the named sensors.SensorModel ``model``) is known ('auto') or
+    assumed ('on': clockwise, stamp at the first point); a non-repetitive sensor without per-point times is
+    not deskewed. ``rate_hz`` (0: the model's, else 10 Hz) gives the sweep period."""
+    if mode == "off":
+        return None
+    period = 1.0 / (rate_hz or (model.rate_hz if model is not None else 10.0))
+    if time is not None:
+        return float(time.min()), float(time.max()), period, "first"
+    known = LAYOUTS.get(layout) or (model.layout if model is not None else None)
+    if (model is not None and model.pattern == "non_repetitive") or (known is None and mode != "on"):
+        return None
+    stamp_at = known.stamp if known is not None else "first"
+    return (*sweep_span(period, stamp_at), period, stamp_at)
 
 
 def sweep_motion(pose_at: Callable[[float], np.ndarray | None], stamp: float, t_min: float, t_max: float,

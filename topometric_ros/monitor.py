@@ -306,24 +306,10 @@ class Monitor:
                             sweep=self._sweep(scan.time, scan.layout))
 
     def _sweep(self, time: np.ndarray | None, layout: str) -> tuple | None:
-        """(t_min, t_max, period_s, stamp_at) of the sweep to deskew by config.sensor.deskew, or None:
-        per-point times when the cloud has them; else azimuth-derived times for a spinning sensor whose
-        driver (layout or named model) is known ('auto') or assumed ('on': clockwise, stamp at the first
-        point); a non-repetitive sensor without per-point times is not deskewed."""
-        from .deskew import sweep_span
-        from .sensors import LAYOUTS
+        """(t_min, t_max, period_s, stamp_at) of the sweep to deskew, or None (deskew.sweep_to_deskew)."""
+        from .deskew import sweep_to_deskew
 
-        mode, model = self.config.sensor.deskew, self.model
-        if mode == "off":
-            return None
-        period = 1.0 / (self.config.sensor.rate_hz or (model.rate_hz if model is not None else 10.0))
-        if time is not None:
-            return float(time.min()), float(time.max()), period, "first"
-        known = LAYOUTS.get(layout) or (model.layout if model is not None else None)
-        if (model is not None and model.pattern == "non_repetitive") or (known is None and mode != "on"):
-            return None
-        stamp_at = known.stamp if known is not None else "first"
-        return (*sweep_span(period, stamp_at), period, stamp_at)
+        return sweep_to_deskew(time, layout, self.model, self.config.sensor.deskew, self.config.sensor.rate_hz)
 
     def add_odometry(self, msg: Any, received: float | None = None) -> bool:
         """A nav_msgs/Odometry (pose of its child frame in its parent frame). Bad quaternions are counted."""
