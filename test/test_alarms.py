@@ -26,6 +26,8 @@ def test_calibration_and_evaluation_bags_are_disjoint():
     assert free_min >= 10  # the goal is a rate per 10 min: at least that much drift-free held-out data
     with pytest.raises(ValueError, match="split"):
         plan_bags(scenes, 100, 1, 100, split="train")
+    first = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="calibration", groups=1)]  # a shorter calibration
+    assert first == cal[:len(first)] and {s.layout_seed for s in first} == set(SPLITS["calibration"][0][0])
 
 
 def records(levels, t0=0.0, dt=1.0):
@@ -80,6 +82,20 @@ def test_reassessing_recorded_windows_gives_what_the_monitor_gives(other):
     again = reassess(base, other)
     direct = monitor_records(other)
     assert [(r["level"], r["message"]) for r in again] == [(r["level"], r["message"]) for r in direct]
+
+
+def test_reassessing_replaces_the_limits_the_score_judges_real_drift_by():
+    """Relative limits, no learning: the translation WARN limit of a window at 2 m/s is trans_floor + trans_per_m
+    x 2 m/s; a reassessment with another trans_per_m writes that one's limit (real_drift reads it)."""
+    recs = records(["OK"] * 3)
+    for r in recs:
+        r.update(pne=-8.0, cpv=1e-4, n_planes=40, rot_rate=0.1, trans_rate=0.07, speed=2.0, turn_rate=0.0,
+                 trans_rate_warn_at=123.0)
+    for per_m, level in ((0.01, "WARN"), (0.05, "OK")):
+        again = reassess(recs, HealthConfig(rate_limits="relative", noise_windows=0, trans_floor=0.04,
+                                            trans_per_m=per_m, baseline_windows=1))
+        assert [r["trans_rate_warn_at"] for r in again] == pytest.approx([0.04 + per_m * 2.0] * 3)
+        assert again[-1]["level"] == level
 
 
 def test_score_counts_false_warns_per_ten_minutes_and_detections():
@@ -187,7 +203,7 @@ def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
     """A drift-free run whose jittery SLAM shows 0.09 m/s standing still (learned in its first windows) with one
     0.25 m/s spike later, and a drift run whose 0.34 m/s episode starts at 20 s: a learned-floor margin of 2
     (floor 0.18) keeps the spike an alarm, 3 (0.27) does not and still catches the episode, 4 (0.36) misses it."""
-    from topometric_ros.experiments.alarms import Run, sweep_rates
+    from topometric_ros.experiments.alarms import Run, closest_rates, sweep_rates
     from topometric_ros.sim.drift import DriftSpec
     from topometric_ros.sim.writer import SimConfig
 
@@ -207,3 +223,25 @@ def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
     assert rows[2.0]["worst_cell_false_per_10min"] > 1.0 and rows[3.0]["worst_cell_false_per_10min"] == 0.0
     assert rows[3.0]["detected"] == 1 and rows[4.0]["detected"] == 0
     assert chosen["noise_margin"] == 3.0
+    # a target no setting meets: none is chosen; the closest is the fewest false WARNs, then the most detections
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, -1.0, grid)
+    assert chosen is None and closest_rates(sweep, grid)["noise_margin"] == 3.0
+
+
+def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error():
+    """A window reading half the injected drift (1 °/s and 0.1 m/s of 2 °/s and 0.2 m/s) scores 0.5 on both
+    rates and on rpe_estimate against the injected drift's own RPE; against a true RPE (the SLAM's jitter on
+    top) of twice that injected RPE it scores 0.25."""
+    from topometric_ros.experiments.alarms import rate_accuracy
+    from topometric_ros.metrics.drift_rate import rpe_estimate
+
+    times = np.linspace(20.0, 20.9, 10)
+    injected_rpe = rpe_estimate(2.0, 0.2, times)
+    window = {"start": 20.0, "end": 20.9, "n_scans": 10, "rot_rate": 1.0, "trans_rate": 0.1,
+              "rpe_estimate": rpe_estimate(1.0, 0.1, times), "rpe": 2 * injected_rpe,
+              "true_rot_rate": 2.0, "true_trans_rate": 0.2}
+    episode = {"start": 19.5, "end": 28.0, "rot_rate": np.radians(2.0), "trans_rate": 0.2}
+    (row,) = rate_accuracy([window, {**window, "start": 30.0, "end": 30.9}], [episode])  # the 2nd lies outside
+    assert row["rot_rate"] == pytest.approx(0.5) and row["trans_rate"] == pytest.approx(0.5)
+    assert row["rpe_estimate"] == pytest.approx(0.5) and row["rpe_estimate_vs_true"] == pytest.approx(0.25)
+    assert row["rot_rate_vs_true"] == pytest.approx(0.5) and row["trans_rate_vs_true"] == pytest.approx(0.5)

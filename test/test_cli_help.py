@@ -35,3 +35,13 @@ def test_every_option_of_every_subcommand_shows_its_default(monkeypatch):
     demo = " ".join(sub.choices["demo"].format_help().split())
     assert "--frames FRAMES scans in the demo bag (5 per second) (default: 150)" in demo
     assert "(default: labels)" in demo  # the demo's segmentation
+
+
+def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
+    from topometric_ros.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["alarms", "--groups", "1"]).groups == 1
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--groups", "-1"],
+                         capture_output=True, text=True)
+    assert res.returncode == 2 and "expected a whole number >= 0, got '-1'" in res.stderr

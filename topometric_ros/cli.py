@@ -166,6 +166,8 @@ def cmd_alarms(args: argparse.Namespace) -> int:
             "address": args.address or None}
     if args.sensors:
         plan["sensors"] = args.sensors
+    if args.groups:
+        plan["groups"] = args.groups
     if args.calibrate_rates:
         from .experiments.alarms import calibrate_rates, format_rate_calibration
 
@@ -216,6 +218,17 @@ def _floats(text: str) -> tuple:
 
 def _ints(text: str) -> tuple:
     return tuple(int(x) for x in text.split(",") if x.strip())
+
+
+def _count(text: str) -> int:
+    """A whole number >= 0 (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return n
 
 
 def _words(text: str) -> tuple:
@@ -494,6 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--scales", type=_floats, default=None, help="drift scales of the episode bags (default 1, 1.5, 2)")
     a.add_argument("--sensors", type=_sensors, default=None,
                    help="sensors the bags cycle through (default: the split's own, held out between splits)")
+    a.add_argument("--groups", type=_count, default=0,
+                   help="only the split's first N groups of floor plans (0 = all; a shorter calibration)")
     a.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_engine_args(a)
     _add_monitor_args(a, "labels")

@@ -76,6 +76,19 @@ class Assessment:
     error_at: dict = field(default_factory=dict)
 
 
+def assessment_fields(a: "Assessment | None") -> dict:
+    """A window record's health columns (windows.json): z_pne, z_cpv and each metric's and rate's warn_at /
+    error_at (metric units), NaN without an assessment."""
+    nan = float("nan")
+    out = {}
+    for metric in (*METRICS, *RATES):
+        if metric in METRICS:
+            out[f"z_{metric}"] = a.z.get(metric, nan) if a else nan
+        out[f"{metric}_warn_at"] = a.warn_at.get(metric, nan) if a else nan
+        out[f"{metric}_error_at"] = a.error_at.get(metric, nan) if a else nan
+    return out
+
+
 class Health:
     """Stateful assessor: one per monitored stream. ``assess`` sets result.level / result.message."""
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import bag, geometry, storage
 from .config import Config, flatten
-from .health import RATES, diagnostic_array, diagnostic_status, status_name, window_values
+from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
 
@@ -107,11 +107,7 @@ class _Recorder:
                 rec[name] = getattr(result, name)
         rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
         rec.update(speed=result.speed, turn_rate=result.turn_rate)
-        for metric in ("pne", "cpv", *RATES):
-            if metric in ("pne", "cpv"):
-                rec[f"z_{metric}"] = a.z.get(metric, float("nan")) if a else float("nan")
-            rec[f"{metric}_warn_at"] = a.warn_at.get(metric, float("nan")) if a else float("nan")
-            rec[f"{metric}_error_at"] = a.error_at.get(metric, float("nan")) if a else float("nan")
+        rec.update(assessment_fields(a))
         rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})
         counters = m.counters
         status = diagnostic_status(self.types, result.level, result.message, window_values(result, counters),
