@@ -4,6 +4,7 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 
 from topometric_ros.cli import main
@@ -105,3 +106,29 @@ def test_train_from_weights_starts_there_and_records_the_parent(trained, office_
     assert main(["train", str(bag), "--init", str(tmp_path / "missing.pt"), "--epochs", "1", "--out",
                  str(tmp_path / "x"), "--cache", str(out / "cache")]) == 2
     assert "segmentation weights not found" in capsys.readouterr().err
+
+
+def test_cache_built_in_worker_processes_equals_the_one_built_in_process(office_bag, tmp_path):
+    from topometric_ros.segmentation.data import build_cache
+
+    bag, _ = office_bag
+    one = build_cache([bag, bag], tmp_path / "one.npz", every=10, progress=False)
+    two = build_cache([bag, bag], tmp_path / "two.npz", every=10, progress=False, workers=2)
+    assert one.keys() == two.keys() and len(one) == 1
+    for shape, g in one.items():
+        assert len(g["images"]) == 2 * 3  # scans 0, 10, 20 of each copy, in bag order
+        for key in ("images", "labels", "scene", "sensor"):
+            np.testing.assert_array_equal(g[key], two[shape][key])
+
+
+@pytest.mark.parametrize("device, reason", [("tpu", "unknown training device"), ("cuda:0", "no CUDA device")])
+def test_train_on_a_device_this_machine_lacks_is_a_clear_error(office_bag, tmp_path, capsys, device, reason):
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    bag, _ = office_bag
+    assert main(["train", str(bag), "--device", device, "--epochs", "1", "--out", str(tmp_path / "w"),
+                 "--cache", str(tmp_path / "cache")]) == 2
+    assert reason in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists()  # refused before any work

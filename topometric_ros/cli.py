@@ -310,7 +310,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from .segmentation.train import TrainConfig, train
 
     cfg = TrainConfig(epochs=args.epochs, crops_per_epoch=args.crops, batch=args.batch, crop_width=args.crop_width,
-                      lr=args.lr, every=args.every, seed=args.seed, threads=args.threads, max_minutes=args.max_minutes)
+                      lr=args.lr, every=args.every, seed=args.seed, threads=args.threads, max_minutes=args.max_minutes,
+                      device=args.device, workers=args.workers)
     spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")),
                      context=tuple(int(d) for d in args.context.split(",")))
     bags = expand_bags(args.bags)
@@ -418,6 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init", default="", help="start from these weights (fine-tuning; their network replaces "
                                               "--widths/--context; recorded in the model card)")
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when there is one)")
+    t.add_argument("--workers", type=_count, default=1, help="processes that build the projected-scan cache")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
     t.set_defaults(func=cmd_train)
 

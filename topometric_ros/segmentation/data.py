@@ -75,25 +75,37 @@ def cache_key(bags: Sequence[str | Path], every: int) -> str:
     return h.hexdigest()[:12]
 
 
+def bag_images(bag_path: str | Path, topic: str = "/points", every: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(images, labels) of :func:`scan_images` for every ``every``-th labelled scan of one bag."""
+    return [scan_images(scan) for scan in read_scans(bag_path, topic, every)]
+
+
 def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, topic: str = "/points",
-                progress: bool = True) -> dict[tuple, dict[str, np.ndarray]]:
-    """Project every ``every``-th labelled scan of ``bags`` once and save them as an .npz at ``path``.
+                progress: bool = True, workers: int = 1) -> dict[tuple, dict[str, np.ndarray]]:
+    """Project every ``every``-th labelled scan of ``bags`` once and save them as an .npz at ``path``;
+    ``workers`` > 1 projects the bags in that many processes (the same cache, in the same order).
 
     Returns {(rows, width): {'images': (S, 4, rows, width) float16 (x, y, z, intensity), 'labels': (S, rows,
     width) uint8, 'scene': (S,) str, 'sensor': (S,) str}}: one group per image shape (a scan of many beams
     adds its k interleaved images to its group).
     """
+    from concurrent.futures import ProcessPoolExecutor
+    from functools import partial
+
     from tqdm import tqdm
 
+    bags = list(bags)
+    read = partial(bag_images, topic=topic, every=every)
     groups: dict[tuple, dict[str, list]] = {}
-    for b in tqdm(list(bags), desc="cache bags", unit="bag", disable=not progress):
-        for scan in read_scans(b, topic, every):
-            images, labels = scan_images(scan)
-            g = groups.setdefault(images.shape[-2:], {"images": [], "labels": [], "scene": [], "sensor": []})
-            g["images"] += list(images)
-            g["labels"] += list(labels)
-            g["scene"] += [scene_of(b)] * len(images)
-            g["sensor"] += [sensor_of(b)] * len(images)
+    with ProcessPoolExecutor(workers) if workers > 1 else _InProcess() as pool:
+        per_bag = pool.map(read, bags)
+        for b, scans in tqdm(zip(bags, per_bag), total=len(bags), desc="cache bags", unit="bag", disable=not progress):
+            for images, labels in scans:
+                g = groups.setdefault(images.shape[-2:], {"images": [], "labels": [], "scene": [], "sensor": []})
+                g["images"] += list(images)
+                g["labels"] += list(labels)
+                g["scene"] += [scene_of(b)] * len(images)
+                g["sensor"] += [sensor_of(b)] * len(images)
     if not groups:
         raise ValueError(f"no scans found on {topic} in {len(bags)} bag(s)")
     data = {shape: {k: np.stack(v) if k in ("images", "labels") else np.array(v) for k, v in g.items()}
@@ -104,12 +116,28 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
     return data
 
 
+class _InProcess:
+    """A stand-in for a process pool with one worker: map runs lazily in this process."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def map(fn, items):
+        return map(fn, items)
+
+
 def load_or_build_cache(bags: Sequence[str | Path], cache_dir: str | Path, every: int = 1,
-                        topic: str = "/points", progress: bool = True) -> dict[tuple, dict[str, np.ndarray]]:
-    """The cache for these bags under ``cache_dir`` (built on first use), grouped by image shape."""
+                        topic: str = "/points", progress: bool = True,
+                        workers: int = 1) -> dict[tuple, dict[str, np.ndarray]]:
+    """The cache for these bags under ``cache_dir`` (built on first use, in ``workers`` processes), grouped
+    by image shape."""
     path = Path(cache_dir) / f"seg_cache_{cache_key(bags, every)}.npz"
     if not path.exists():
-        return build_cache(bags, path, every, topic, progress)
+        return build_cache(bags, path, every, topic, progress, workers)
     data: dict[tuple, dict[str, np.ndarray]] = {}
     with np.load(path) as z:
         for key in z.files:

@@ -46,6 +46,8 @@ class TrainConfig:
     val_every: int = 4  # use every n-th scan of each validation bag
     seed: int = 0
     threads: int = 1  # torch CPU threads (more than the free cores makes OpenMP crawl on a shared machine)
+    device: str = "cpu"  # cpu, cuda (cuda:N) or auto (cuda when there is one); the saved weights are CPU tensors
+    workers: int = 1  # processes that project the bags into the cache (its first build only)
     height_jitter: float = 0.1  # m, uniform ± sensor height change
     tilt_deg: float = 1.5  # deg, std of sensor roll / pitch jitter
     range_noise: float = 0.01  # m, std of extra range noise
@@ -107,25 +109,29 @@ def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Gene
 
 
 def augment(x: torch.Tensor, y: torch.Tensor, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Augment a batch of crops (see module docstring); returns the network input and labels (255 = ignore)."""
-    b = x.shape[0]
+    """Augment a batch of crops (see module docstring); returns the network input and labels (255 = ignore).
+    The crops and the generator ``g`` are on one device; the random draws are made there."""
+    b, dev = x.shape[0], g.device
     xyz, inten = x[:, :3], x[:, 3:4]
     valid = y != 255
 
+    def rand(*shape):
+        return torch.rand(*shape, generator=g, device=dev)
+
     def uniform(lo, hi, *shape):
-        return lo + (hi - lo) * torch.rand(*shape, generator=g)
+        return lo + (hi - lo) * rand(*shape)
 
     yaw = uniform(0, 2 * math.pi, b)
-    mirror = torch.rand(b, generator=g) < 0.5
-    roll, pitch = (torch.randn(2, b, generator=g) * math.radians(cfg.tilt_deg)).unbind(0)
+    mirror = rand(b) < 0.5
+    roll, pitch = (torch.randn(2, b, generator=g, device=dev) * math.radians(cfg.tilt_deg)).unbind(0)
     rot = _rotation(yaw, roll, pitch)
-    rot[mirror] = rot[mirror] * torch.tensor([1.0, -1.0, 1.0]).view(1, 3)  # y -> -y, then the columns flip below
+    rot[mirror] = rot[mirror] * torch.tensor([1.0, -1.0, 1.0], device=dev).view(1, 3)  # y -> -y; columns flip below
     xyz = torch.einsum("bij,bjhw->bihw", rot, xyz)
     xyz[:, 2] += uniform(-cfg.height_jitter, cfg.height_jitter, b).view(b, 1, 1)
     r = torch.linalg.vector_norm(xyz, dim=1, keepdim=True).clamp_min(1e-3)
-    xyz = xyz * (1 + cfg.range_noise * torch.randn(r.shape, generator=g) / r)
-    inten = inten * uniform(0.8, 1.2, b).view(b, 1, 1, 1) * (torch.rand(b, generator=g) >= cfg.no_intensity).view(b, 1, 1, 1)
-    drop = torch.rand(valid.shape, generator=g) < uniform(0, cfg.max_dropout, b).view(b, 1, 1)
+    xyz = xyz * (1 + cfg.range_noise * torch.randn(r.shape, generator=g, device=dev) / r)
+    inten = inten * uniform(0.8, 1.2, b).view(b, 1, 1, 1) * (rand(b) >= cfg.no_intensity).view(b, 1, 1, 1)
+    drop = rand(*valid.shape) < uniform(0, cfg.max_dropout, b).view(b, 1, 1)
     valid = valid & ~drop
     y = torch.where(valid, y, torch.full_like(y, 255))
     inp = network_input(xyz, inten, valid)
@@ -144,18 +150,36 @@ def _rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> tor
     return rz @ ry @ rx
 
 
+def training_device(name: str) -> torch.device:
+    """The torch device of ``TrainConfig.device``: auto = the first CUDA device when there is one, else the CPU.
+    Raises ValueError for an unknown name or a CUDA device this machine does not have."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as e:
+        raise ValueError(f"unknown training device {name!r} (cpu, cuda, cuda:N or auto)") from e
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"training device {name!r}: torch sees no CUDA device here (use cpu or auto)")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"unknown training device {name!r} (cpu, cuda, cuda:N or auto)")
+    return dev
+
+
 @torch.inference_mode()
 def evaluate_cache(model: RangeNet, groups: Sequence[dict], batch: int = 4) -> np.ndarray:
-    """Confusion matrix of the model on whole cached images of every shape group (circular padding)."""
+    """Confusion matrix of the model on whole cached images of every shape group (circular padding), on the
+    model's device."""
     model.eval().set_circular(True)
+    dev = next(model.parameters()).device
     conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
     for g in groups:
         images, labels = g["images"], g["labels"]
         for i in range(0, len(images), batch):
-            x = torch.from_numpy(images[i:i + batch].astype(np.float32))
+            x = torch.from_numpy(images[i:i + batch].astype(np.float32)).to(dev)
             y = labels[i:i + batch]
-            inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255))
-            pred = model(inp).argmax(1).numpy()
+            inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255).to(dev))
+            pred = model(inp).argmax(1).cpu().numpy()
             conf += confusion(y, pred)
     return conf
 
@@ -209,12 +233,14 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     t0 = time.perf_counter()
     if cfg.crop_width % (2 * spec.fold):
         raise ValueError(f"crop_width {cfg.crop_width} must be a multiple of {2 * spec.fold}")
+    dev = training_device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    g = torch.Generator().manual_seed(cfg.seed)
-    data = load_or_build_cache(bags, cache_dir, cfg.every, progress=progress)
-    val = load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress) if val_bags else None
+    g = torch.Generator(device=dev).manual_seed(cfg.seed)
+    data = load_or_build_cache(bags, cache_dir, cfg.every, progress=progress, workers=cfg.workers)
+    val = (load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress, workers=cfg.workers)
+           if val_bags else None)
     groups = list(data.values())
     val_groups = list(val.values()) if val is not None else None
     weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
@@ -224,6 +250,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         spec = model.spec
     else:
         model, started = RangeNet(spec), None
+    model, weights = model.to(dev), weights.to(dev)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
@@ -254,13 +281,13 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
                    leave=False)
         for _ in bar:
             x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng)
-            inp, y = augment(x, y, cfg, g)
+            inp, y = augment(x.to(dev, non_blocking=True), y.to(dev, non_blocking=True), cfg, g)
             logits = model(inp)
             loss = F.cross_entropy(logits, y, weight=weights, ignore_index=255)
             if cfg.lovasz > 0:
                 yf = y.reshape(-1)
                 keep = torch.nonzero(yf != 255).squeeze(1)
-                keep = keep[torch.randperm(len(keep), generator=g)[:cfg.lovasz_pixels]]
+                keep = keep[torch.randperm(len(keep), generator=g, device=dev)[:cfg.lovasz_pixels]]
                 probs = logits.softmax(1).permute(0, 2, 3, 1).reshape(-1, logits.shape[1])[keep]
                 loss = loss + cfg.lovasz * lovasz_softmax(probs, yf[keep])
             opt.zero_grad(set_to_none=True)
@@ -268,7 +295,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             opt.step()
             sched.step()
             losses.append(loss.item())
-            conf += confusion(y.numpy(), logits.detach().argmax(1).numpy())
+            conf += confusion(y.cpu().numpy(), logits.detach().argmax(1).cpu().numpy())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
             if budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
                 break  # time is up: finish this (partial) epoch with its validation
@@ -279,7 +306,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             entry["val_miou"] = round(miou(vconf), 4)
             entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
             if entry["val_miou"] >= best:
-                best, best_state = entry["val_miou"], {k: v.detach().clone() for k, v in model.state_dict().items()}
+                best, best_state = entry["val_miou"], {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
                 entry["best"] = True
         history.append(entry)
         val_text = f" val mIoU {100 * entry['val_miou']:.2f}" if "val_miou" in entry else ""
@@ -287,6 +314,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
                    f"{val_text} ({entry['seconds']:.0f} s)")
         (out / "train_log.json").write_text(json.dumps(history, indent=2))
     selected = 0
+    model = model.cpu()
     if best_state is not None:
         model.load_state_dict(best_state)
         selected = max(e["epoch"] for e in history if e.get("best"))
