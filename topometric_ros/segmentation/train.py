@@ -306,7 +306,8 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             entry["val_miou"] = round(miou(vconf), 4)
             entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
             if entry["val_miou"] >= best:
-                best, best_state = entry["val_miou"], {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+                best = entry["val_miou"]
+                best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
                 entry["best"] = True
         history.append(entry)
         val_text = f" val mIoU {100 * entry['val_miou']:.2f}" if "val_miou" in entry else ""
