@@ -25,6 +25,21 @@ class SegmentationError(ValueError):
     """Weights that are missing, unreadable, tampered with or do not fit the network; bad device."""
 
 
+def torch_device(name: str, what: str = "device", choices: str = "cpu or cuda") -> torch.device:
+    """The torch device ``name`` (cpu, cuda or cuda:N) names, for the network to run or train on.
+    Raises SegmentationError for another name or a CUDA device torch does not see; ``what`` and ``choices``
+    word the message."""
+    try:
+        dev = torch.device(name) if name in ("cpu", "cuda") or name.startswith("cuda:") else None
+    except RuntimeError:
+        dev = None
+    if dev is None:
+        raise SegmentationError(f"unknown {what} {name!r}; use {choices}")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SegmentationError(f"{what} {name!r} requested but torch sees no CUDA device here")
+    return dev
+
+
 def load_weights(path: str | Path) -> tuple[dict, dict]:
     """(model card, state dict) of a weights file, loaded without executing code."""
     path = Path(path)

@@ -90,6 +90,7 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
     adds its k interleaved images to its group).
     """
     from concurrent.futures import ProcessPoolExecutor
+    from contextlib import nullcontext
     from functools import partial
 
     from tqdm import tqdm
@@ -97,8 +98,8 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
     bags = list(bags)
     read = partial(bag_images, topic=topic, every=every)
     groups: dict[tuple, dict[str, list]] = {}
-    with ProcessPoolExecutor(workers) if workers > 1 else _InProcess() as pool:
-        per_bag = pool.map(read, bags)
+    with ProcessPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
+        per_bag = pool.map(read, bags) if pool else map(read, bags)  # in bag order either way
         for b, scans in tqdm(zip(bags, per_bag), total=len(bags), desc="cache bags", unit="bag", disable=not progress):
             for images, labels in scans:
                 g = groups.setdefault(images.shape[-2:], {"images": [], "labels": [], "scene": [], "sensor": []})
@@ -114,20 +115,6 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **{f"{k}_{h}x{w}": v for (h, w), g in data.items() for k, v in g.items()})
     return data
-
-
-class _InProcess:
-    """A stand-in for a process pool with one worker: map runs lazily in this process."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def map(fn, items):
-        return map(fn, items)
 
 
 def load_or_build_cache(bags: Sequence[str | Path], cache_dir: str | Path, every: int = 1,

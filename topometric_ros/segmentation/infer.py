@@ -24,7 +24,7 @@ from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import Projection, project
-from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights
+from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
 
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
@@ -114,13 +114,9 @@ class Segmenter:
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime"):
-        if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
-            raise SegmentationError(f"unknown device {device!r}; use cpu or cuda")
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise SegmentationError("device cuda requested but torch sees no CUDA GPU")
+        self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
-        self.device = torch.device(device)
         self.threads = threads
         self.card = card
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes

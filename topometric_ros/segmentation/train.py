@@ -22,7 +22,7 @@ import torch
 from torch.nn import functional as F
 
 from .. import classes as C
-from .checkpoint import FORMAT_VERSION, build_model, load_weights, save_weights, state_digest
+from .checkpoint import FORMAT_VERSION, build_model, load_weights, save_weights, state_digest, torch_device
 from .data import load_or_build_cache
 from .metrics import confusion, iou_per_class, miou
 from .model import ModelSpec, RangeNet, count_parameters
@@ -151,19 +151,11 @@ def _rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> tor
 
 
 def training_device(name: str) -> torch.device:
-    """The torch device of ``TrainConfig.device``: auto = the first CUDA device when there is one, else the CPU.
-    Raises ValueError for an unknown name or a CUDA device this machine does not have."""
+    """The torch device of ``TrainConfig.device``: auto = the first CUDA device when there is one, else the CPU;
+    otherwise as checkpoint.torch_device (SegmentationError, a ValueError, for an unknown or missing device)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError as e:
-        raise ValueError(f"unknown training device {name!r} (cpu, cuda, cuda:N or auto)") from e
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"training device {name!r}: torch sees no CUDA device here (use cpu or auto)")
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"unknown training device {name!r} (cpu, cuda, cuda:N or auto)")
-    return dev
+    return torch_device(name, "training device", "cpu, cuda, cuda:N or auto")
 
 
 @torch.inference_mode()
