@@ -1,5 +1,6 @@
 """health.py: robust baseline, sigma and absolute alarms, STALE, and the diagnostics messages."""
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -257,3 +258,19 @@ def test_the_noise_floor_is_learned_per_run_within_bounds():
     for _ in range(15):
         noisy.assess(_moving(rot=5.0, trans=1.0))
     assert noisy.rates.limits(_moving())["trans_rate"][0] == pytest.approx(0.12)  # never above 3 × it
+
+
+def test_rate_persistence_needs_repeated_windows_between_warn_and_error():
+    """rate_persist 2 of 2: one window above the WARN limit (1.0 °/s standing still here) stays OK, named as
+    'watch'; the next one above it alarms; a window at the ERROR limit (2.0) alarms at once; rate_persist 1 is
+    today's rule (WARN at once)."""
+    c = HealthConfig(noise_windows=0, warn_persist=1, rot_floor=1.0, rate_persist=2, persist_windows=2)
+    h = Health(c)
+    r = _moving(rot=1.5)
+    assert h.assess(r).level == "OK" and "watch: rotation drift 1.5 °/s above limit 1 in 1 of 2" in r.message
+    r = _moving(rot=1.2)
+    assert h.assess(r).level == "WARN" and "(2 of the last 2 windows)" in r.message
+    assert h.assess(_moving(rot=0.5)).level == "OK"  # back under: the next single window waits again
+    assert h.assess(_moving(rot=1.5)).level == "OK"
+    assert Health(c).assess(_moving(rot=2.0)).level == "ERROR"
+    assert Health(replace(c, rate_persist=1)).assess(_moving(rot=1.5)).level == "WARN"

@@ -12,8 +12,9 @@ z at or above warn_sigma: drift lasts, a single odd window (a view of few planes
 calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
 (config, in metric units, 0 = off) apply at once, from the first window.
 The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s from one joint fit to the
-planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their absolute limits
-(``rot_rate_*``, ``trans_rate_*``) act at once, from the first window. They carry most detections; the
+planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their
+limits (RateLimits) act from the first window; a rate at its ERROR limit alarms at once, one between WARN and
+ERROR once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows (1: at once). They carry most detections; the
 sigma alarms catch inconsistency without a trend (pose noise, jumps).
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
@@ -97,6 +98,7 @@ class Health:
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
         self._high: deque[bool] = deque(maxlen=max(1, self.config.persist_windows, self.config.warn_persist))
+        self._rate_high = {r: deque(maxlen=max(1, self.config.persist_windows, self.config.rate_persist)) for r in RATES}
         self.rates = RateLimits(self.config)
         self.last: Assessment | None = None
 
@@ -127,13 +129,20 @@ class Health:
         for rate, (meaning, unit) in RATES.items():
             value = float(getattr(result, rate, float("nan")))
             warn_at[rate], error_at[rate] = limits[rate]
+            (warn, error), high = limits[rate], self._rate_high[rate]
+            high.append(bool(np.isfinite(value) and warn > 0 and value >= warn))
             if not np.isfinite(value):
                 continue  # no co-plane group: already reported as CPV undefined
-            for name, limit in (("ERROR", limits[rate][1]), ("WARN", limits[rate][0])):
-                if limit > 0 and value >= limit:
-                    level = _worse(level, name)
-                    alarms.append(f"{meaning}: {value:.3g} {unit} (limit {limit:.3g}{self.rates.why(result)})")
-                    break
+            if error > 0 and value >= error:
+                level = _worse(level, "ERROR")
+                alarms.append(f"{meaning}: {value:.3g} {unit} (limit {error:.3g}{self.rates.why(result)})")
+            elif high[-1] and sum(high) >= c.rate_persist:
+                level = _worse(level, "WARN")
+                alarms.append(f"{meaning}: {value:.3g} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
+                              (f" ({sum(high)} of the last {len(high)} windows)" if c.rate_persist > 1 else ""))
+            elif high[-1]:
+                notes.append(f"watch: {meaning} {value:.3g} {unit} above limit {warn:.3g} in {sum(high)} of "
+                             f"{c.rate_persist} windows needed")
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):

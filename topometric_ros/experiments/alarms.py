@@ -496,10 +496,11 @@ def calibrate(out: str | Path, config: Config, scenes: list[str], frames: int = 
     return doc
 
 
-#: The relative rate limits' settings swept by calibrate_rates: the learned floor's margin, quantile and cap, and
-#: the motion shares (rotation per metre and per degree turned, translation per metre).
+#: The relative rate limits' settings swept by calibrate_rates: the learned floor's margin, quantile and cap, the
+#: motion shares (rotation per metre and per degree turned, translation per metre) and the rates' persistence.
 RATE_GRID = {"noise_margin": (2.0, 3.0, 4.0), "noise_quantile": (0.75, 0.9), "noise_max_factor": (3.0, 5.0, 8.0),
-             "rot_per_m": (0.05, 0.1), "rot_per_deg": (0.01, 0.02, 0.04), "trans_per_m": (0.01, 0.02)}
+             "rot_per_m": (0.05, 0.1), "rot_per_deg": (0.01, 0.02, 0.04), "trans_per_m": (0.01, 0.02),
+             "rate_persist": (1, 2)}
 
 
 def calibrate_rates(out: str | Path, config: Config, scenes: list[str], frames: int = 400, free_bags: int = 5,
