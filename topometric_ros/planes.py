@@ -70,26 +70,26 @@ class Plane:
 def fit_plane(points: np.ndarray, cls: int, frame: int = -1, max_sample: int = 256,
               rng: np.random.Generator | None = None) -> Plane:
     """Least-squares plane through (K ≥ 3, 3) sensor-frame points; normal oriented toward the sensor origin."""
-    pts = np.asarray(points, np.float64)
-    if len(pts) < 3:
-        raise ValueError(f"a plane needs at least 3 points, got {len(pts)}")
-    mean = pts.mean(axis=0)
-    centred = pts - mean
-    scatter = centred.T @ centred
+    if len(points) < 3:
+        raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
+    cols = np.ascontiguousarray(np.asarray(points).T, np.float64)  # (3, K): contiguous rows sum fast
+    mean = cols.mean(axis=1)
+    centred = cols - mean[:, None]
+    scatter = centred @ centred.T
     _, vecs = np.linalg.eigh(scatter)
     normal = vecs[:, 0]
     offset = -float(normal @ mean)
     if offset < 0:  # sensor origin on the positive side: n·0 + d > 0
         normal, offset = -normal, -offset
-    if len(pts) > max_sample:
+    if len(points) > max_sample:
         rng = rng or np.random.default_rng(0)
-        sample = points[rng.choice(len(pts), max_sample, replace=False)]
+        sample = points[rng.choice(len(points), max_sample, replace=False)]
     else:
         sample = points
     basis = vecs[:, [2, 1]]  # in-plane principal axes
-    c2, half2 = min_area_rectangle(centred @ basis)
+    c2, half2 = min_area_rectangle((basis.T @ centred).T)
     extent = np.vstack([mean + basis @ c2, (basis @ half2).T])
-    return Plane(int(cls), normal, offset, len(pts), mean, scatter, np.asarray(sample, np.float32), frame, extent)
+    return Plane(int(cls), normal, offset, len(points), mean, scatter, np.asarray(sample, np.float32), frame, extent)
 
 
 def min_area_rectangle(xy: np.ndarray, directions: int = 64) -> tuple[np.ndarray, np.ndarray]:
@@ -103,20 +103,25 @@ def min_area_rectangle(xy: np.ndarray, directions: int = 64) -> tuple[np.ndarray
     if len(xy) > 1000:
         xy = _outer_points(xy, 8)
     hull = _extremes(xy, directions)
-    u = np.roll(hull, -1, axis=0) - hull
-    u = u[np.linalg.norm(u, axis=1) > 0]
-    if len(u) == 0:
+    u = _cyclic(hull, 1) - hull
+    length = np.sqrt(u[:, 0] ** 2 + u[:, 1] ** 2)
+    edge = length > 0
+    if not edge.any():
         return hull[0].astype(np.float64), np.zeros((2, 2))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    u = u[edge] / length[edge, None]
+    v = u[:, ::-1] * [-1.0, 1.0]  # u turned by +90°
     pu, pv = hull @ u.T, hull @ v.T  # (hull points, edge directions)
-    area = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
-    k = int(np.argmin(area))
-    mid_u, mid_v = (pu[:, k].min() + pu[:, k].max()) / 2, (pv[:, k].min() + pv[:, k].max()) / 2
-    halves = np.stack([u[k] * np.ptp(pu[:, k]) / 2, v[k] * np.ptp(pv[:, k]) / 2], axis=1)
+    lo_u, hi_u, lo_v, hi_v = pu.min(axis=0), pu.max(axis=0), pv.min(axis=0), pv.max(axis=0)
+    k = int(np.argmin((hi_u - lo_u) * (hi_v - lo_v)))
+    halves = np.column_stack([u[k] * (hi_u[k] - lo_u[k]) / 2, v[k] * (hi_v[k] - lo_v[k]) / 2])
     if np.linalg.norm(halves[:, 1]) > np.linalg.norm(halves[:, 0]):
         halves = halves[:, ::-1]
-    return u[k] * mid_u + v[k] * mid_v, halves
+    return u[k] * ((lo_u[k] + hi_u[k]) / 2) + v[k] * ((lo_v[k] + hi_v[k]) / 2), halves
+
+
+def _cyclic(a: np.ndarray, k: int) -> np.ndarray:
+    """Row i + k of ``a`` in row i, cyclically: np.roll(a, -k, axis=0) without its overhead."""
+    return np.concatenate([a[k:], a[:k]])
 
 
 def _extremes(xy: np.ndarray, directions: int) -> np.ndarray:
@@ -125,7 +130,7 @@ def _extremes(xy: np.ndarray, directions: int) -> np.ndarray:
         angles = np.arange(directions) * (2 * np.pi / directions)
         _DIRECTIONS[directions] = np.stack([np.cos(angles), np.sin(angles)], 1)
     idx = (_DIRECTIONS[directions] @ xy.T).argmax(axis=1)
-    keep = idx != np.roll(idx, 1)
+    keep = idx != _cyclic(idx, -1)
     return xy[idx[keep]] if keep.any() else xy[idx[:1]]
 
 
@@ -138,8 +143,8 @@ def _outer_points(xy: np.ndarray, directions: int) -> np.ndarray:
     poly = _extremes(xy, directions)
     if len(poly) < 3:
         return xy
-    edge = np.roll(poly, -1, axis=0) - poly
-    left = np.stack([-edge[:, 1], edge[:, 0]], 1)  # inward normals of a counter-clockwise polygon
+    edge = _cyclic(poly, 1) - poly
+    left = edge[:, ::-1] * [-1.0, 1.0]  # inward normals of a counter-clockwise polygon
     inside = np.all(left @ xy.T > (left * poly).sum(1)[:, None] + 1e-9, axis=0)
     return xy[~inside]
 
