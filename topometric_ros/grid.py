@@ -52,8 +52,8 @@ class ScanGrid:
 
 def elevation_deg(points: np.ndarray) -> np.ndarray:
     """(N,) elevation of sensor-frame points above the x-y plane, degrees."""
-    p = np.asarray(points, np.float64)
-    return np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    x, y, z = np.asarray(points).T.astype(np.float64)  # contiguous coordinate rows
+    return np.degrees(np.arctan2(z, np.hypot(x, y)))
 
 
 def azimuth_columns(points: np.ndarray, width: int) -> np.ndarray:
@@ -113,8 +113,8 @@ def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarra
     when they fall (Ouster), else ranked by each id's median elevation."""
     height = model.beams if model is not None else int(beam.max()) + 1
     sub = slice(None, None, SAMPLE)
-    ids = np.unique(beam)
-    sampled = len(np.unique(beam[sub])) == len(ids)  # a sparse cloud can hide a beam from the sample
+    ids = unique_ids(beam)
+    sampled = len(unique_ids(beam[sub])) == len(ids)  # a sparse cloud can hide a beam from the sample
     med = _medians(beam[sub], el[sub], ids) if sampled else _medians(beam, el, ids)
     steps = np.diff(med)
     if len(steps) == 0 or np.all(steps > 0):
@@ -126,9 +126,24 @@ def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarra
     return rank[beam], len(ids), "ring field (ranked by elevation)"
 
 
+def unique_ids(ids: np.ndarray) -> np.ndarray:
+    """np.unique of integer ids; by counting when they are small and non-negative (no sort)."""
+    if len(ids) and 0 <= ids.min() and ids.max() < 2 ** 16:
+        return np.flatnonzero(np.bincount(ids)).astype(ids.dtype)
+    return np.unique(ids)
+
+
+def argsort_ids(ids: np.ndarray) -> np.ndarray:
+    """np.argsort(ids, kind="stable") of integer ids; a radix sort (~8x faster) when they fit 16 bits."""
+    if len(ids) and 0 <= ids.min() and ids.max() < 2 ** 16:
+        ids = ids.astype(np.uint16)
+    return np.argsort(ids, kind="stable")
+
+
 def _medians(beam: np.ndarray, el: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """Median elevation per beam id, one sort instead of a mask per id."""
-    order = np.lexsort((el, beam))
+    order = np.argsort(el)
+    order = order[argsort_ids(beam[order])]  # by beam, then elevation (as np.lexsort((el, beam)), faster)
     b, e = beam[order], el[order]
     start = np.searchsorted(b, ids, "left")
     stop = np.searchsorted(b, ids, "right")
@@ -193,6 +208,6 @@ def _row_elevations(row: np.ndarray, el: np.ndarray, height: int) -> np.ndarray:
     """(height,) median elevation of each row's points (deg), NaN for empty rows."""
     out = np.full(height, np.nan)
     sub = slice(None, None, SAMPLE)
-    present = np.unique(row[sub])
+    present = unique_ids(row[sub])
     out[present] = _medians(row[sub], el[sub], present)
     return out
