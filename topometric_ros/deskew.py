@@ -94,11 +94,11 @@ def deskew(points: np.ndarray, times: np.ndarray, motion: SweepMotion) -> np.nda
     dt = motion.times[k + 1] - motion.times[k]
     a = np.divide(t - motion.times[k], dt, out=np.zeros_like(t), where=dt > 0)  # knots of a zero-length sweep
     b = 1.0 - a
-    p = np.asarray(points, np.float64)
-    out = np.empty_like(p)
-    rv = [b * motion.rotvecs[k, c] + a * motion.rotvecs[k + 1, c] for c in range(3)]
-    tr = [b * motion.translations[k, c] + a * motion.translations[k + 1, c] for c in range(3)]
-    _rotate(rv, (p[:, 0], p[:, 1], p[:, 2]), out)
+    p = np.asarray(points).T.astype(np.float64)  # (3, N): contiguous coordinate rows
+    out = np.empty((len(t), 3))
+    rv = [b * r.take(k) + a * r.take(k + 1) for r in motion.rotvecs.T]  # .take: faster than r[k]
+    tr = [b * x.take(k) + a * x.take(k + 1) for x in motion.translations.T]
+    _rotate(rv, p, out)
     for c in range(3):
         out[:, c] += tr[c]
     return out.astype(np.float32)

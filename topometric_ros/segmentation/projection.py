@@ -64,13 +64,15 @@ def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) 
     row = grid.row.astype(np.int64)
     sub, pixel = row % k, (row // k) * width + grid.col
     proj = Projection(sub * (rows * width) + pixel, k, rows, width)
-    image = np.zeros((k, len(CHANNELS), rows * width), np.float32)
-    image[sub, 0, pixel] = np.sqrt(np.einsum("ij,ij->i", points, points))
+    channel = rows * width
+    image = np.zeros(k * len(CHANNELS) * channel, np.float32)
+    at = sub * (len(CHANNELS) * channel) + pixel  # flat index of each point's pixel in channel 0 (1-D: faster)
+    image[at] = np.sqrt(np.einsum("ij,ij->i", points, points))
     for c in range(3):
-        image[sub, 1 + c, pixel] = points[:, c]
+        image[at + (1 + c) * channel] = points[:, c]
     if intensity is not None:
-        image[sub, 4, pixel] = np.asarray(intensity, np.float32)
-    image[sub, 5, pixel] = 1.0
+        image[at + 4 * channel] = np.asarray(intensity, np.float32)
+    image[at + 5 * channel] = 1.0
     return image.reshape(k, len(CHANNELS), rows, width), proj
 
 
