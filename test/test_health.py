@@ -274,3 +274,6 @@ def test_rate_persistence_needs_repeated_windows_between_warn_and_error():
     assert h.assess(_moving(rot=1.5)).level == "OK"
     assert Health(c).assess(_moving(rot=2.0)).level == "ERROR"
     assert Health(replace(c, rate_persist=1)).assess(_moving(rot=1.5)).level == "WARN"
+    # absolute limits are a hard line: at once whatever rate_persist says
+    absolute = Health(replace(c, rate_limits="absolute", rot_rate_warn=1.0, rot_rate_error=2.0))
+    assert absolute.assess(_moving(rot=1.5)).level == "WARN"

@@ -14,7 +14,8 @@ calibration bags) does not, so persistence cuts false alarms at a lower threshol
 The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s from one joint fit to the
 planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their
 limits (RateLimits) act from the first window; a rate at its ERROR limit alarms at once, one between WARN and
-ERROR once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows (1: at once). They carry most detections; the
+ERROR (relative limits) once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows: a
+SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once. They carry most detections; the
 sigma alarms catch inconsistency without a trend (pose noise, jumps).
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
@@ -136,13 +137,13 @@ class Health:
             if error > 0 and value >= error:
                 level = _worse(level, "ERROR")
                 alarms.append(f"{meaning}: {value:.3g} {unit} (limit {error:.3g}{self.rates.why(result)})")
-            elif high[-1] and sum(high) >= c.rate_persist:
+            elif high[-1] and sum(high) >= self.rates.persist:
                 level = _worse(level, "WARN")
                 alarms.append(f"{meaning}: {value:.3g} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
-                              (f" ({sum(high)} of the last {len(high)} windows)" if c.rate_persist > 1 else ""))
+                              (f" ({sum(high)} of the last {len(high)} windows)" if self.rates.persist > 1 else ""))
             elif high[-1]:
                 notes.append(f"watch: {meaning} {value:.3g} {unit} above limit {warn:.3g} in {sum(high)} of "
-                             f"{c.rate_persist} windows needed")
+                             f"{self.rates.persist} windows needed")
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
@@ -255,6 +256,12 @@ class RateLimits:
         start = config.noise_max_factor if config.noise_windows > 0 else 1.0
         self.floor = {"rot_rate": config.rot_floor * start, "trans_rate": config.trans_floor * start}
         self.seen = 0
+
+    @property
+    def persist(self) -> int:
+        """Windows of the last persist_windows a rate between WARN and ERROR must be above WARN in before it
+        alarms: rate_persist for relative limits; absolute limits act at once."""
+        return self.c.rate_persist if self.c.rate_limits == "relative" else 1
 
     @property
     def learning(self) -> bool:
