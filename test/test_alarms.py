@@ -218,14 +218,20 @@ def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
             (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0))), drift, {"bag_s": 30.0},
              {"episodes": [{"start": 19.9, "end": 26.0, "rot_rate": 0.0, "trans_rate": 0.25}]})]
     grid = {"noise_margin": (2.0, 3.0, 4.0), "noise_quantile": (0.75,), "noise_max_factor": (10.0,)}
-    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, 1.0, grid)
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, 1.0, grid)
     rows = {r["noise_margin"]: r for r in sweep}
     assert rows[2.0]["worst_cell_false_per_10min"] > 1.0 and rows[3.0]["worst_cell_false_per_10min"] == 0.0
     assert rows[3.0]["detected"] == 1 and rows[4.0]["detected"] == 0
     assert chosen["noise_margin"] == 3.0
     # a target no setting meets: none is chosen; the closest is the fewest false WARNs, then the most detections
-    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, -1.0, grid)
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, -1.0, grid)
     assert chosen is None and closest_rates(sweep, grid)["noise_margin"] == 3.0
+    # rate persistence (2 of the last 2 windows) drops the lone spike but not the 6-window episode (alarmed one
+    # window later, still within 2): the more sensitive margin 2 becomes the choice
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, 1.0, {**grid, "rate_persist": (1, 2)})
+    rows = {(r["noise_margin"], r["rate_persist"]): r for r in sweep}
+    assert rows[2.0, 1]["worst_cell_false_per_10min"] > 1.0 and rows[2.0, 2]["worst_cell_false_per_10min"] == 0.0
+    assert rows[2.0, 2]["detected"] == 1 and (chosen["noise_margin"], chosen["rate_persist"]) == (2.0, 2)
 
 
 def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error():
