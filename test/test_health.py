@@ -222,7 +222,8 @@ def _moving(rot=0.0, trans=0.0, speed=0.0, turn=0.0):
 def test_relative_limits_grow_with_speed_and_turning_like_kitti():
     """Limits = floor + share of the motion: rotation 0.5 °/s + 0.05 °/m × speed + 0.01 × turn rate, translation
     0.04 m/s + 1 % of speed; ERROR at twice that. With no learning the configured floors hold."""
-    c = HealthConfig(noise_windows=0, warn_persist=1, rot_per_m=0.05, rot_per_deg=0.01, trans_per_m=0.01)
+    c = HealthConfig(noise_windows=0, warn_persist=1, rate_persist=1, rot_per_m=0.05, rot_per_deg=0.01,
+                     trans_per_m=0.01)
     h = Health(c)
     limits = h.rates.limits(_moving(speed=10.0, turn=50.0))
     assert limits["rot_rate"] == pytest.approx((0.5 + 0.5 + 0.5, 3.0))
@@ -238,7 +239,8 @@ def test_relative_limits_grow_with_speed_and_turning_like_kitti():
 def test_the_noise_floor_is_learned_per_run_within_bounds():
     """A jittery SLAM: 0.35 °/s and 0.03 m/s standing still in its first windows. While learning, the floors
     are noise_max_factor × the configured ones; then 2 × the 0.75-quantile, clipped to [floor, 3 × floor]."""
-    c = HealthConfig(noise_windows=15, warn_persist=1, noise_quantile=0.75, noise_margin=2.0, noise_max_factor=3.0)
+    c = HealthConfig(noise_windows=15, warn_persist=1, rate_persist=1, noise_quantile=0.75, noise_margin=2.0,
+                     noise_max_factor=3.0)
     h = Health(c)
     assert h.rates.limits(_moving())["rot_rate"][0] == pytest.approx(1.5)  # learning: 3 × 0.5
     rng = np.random.default_rng(0)

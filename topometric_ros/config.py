@@ -124,7 +124,7 @@ class HealthConfig:
     trans_floor: float = 0.04  # m/s, translation drift allowed standing still (relative limits; raised per run by the learned noise floor)
     trans_per_m: float = 0.01  # m per m travelled (a fraction of the distance), added to the translation limit (relative limits)
     error_factor: float = 2.0  # ERROR at this multiple of a rate's WARN limit (relative limits)
-    rate_persist: int = 1  # a drift rate between its WARN and ERROR limits alarms once it was above WARN in this many of the last persist_windows windows (1 = at once; relative limits only); at ERROR at once
+    rate_persist: int = 2  # a drift rate between its WARN and ERROR limits alarms once it was above WARN in this many of the last persist_windows windows (1 = at once; relative limits only); at ERROR at once
     noise_windows: int = 15  # windows that learn the run's noise floor of the rates; meanwhile the floors are noise_max_factor x theirs
     noise_quantile: float = 0.75  # quantile of the learning windows' rates (above the motion share) the floor is learned from
     noise_margin: float = 2.0  # learned floor = this x that quantile

@@ -15,8 +15,8 @@ The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s fro
 planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their
 limits (RateLimits) act from the first window; a rate at its ERROR limit alarms at once, one between WARN and
 ERROR (relative limits) once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows: a
-SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once. They carry most detections; the
-sigma alarms catch inconsistency without a trend (pose noise, jumps).
+SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once.
+They carry most detections; the sigma alarms catch inconsistency without a trend (pose noise, jumps).
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
 
@@ -99,7 +99,8 @@ class Health:
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
         self._high: deque[bool] = deque(maxlen=max(1, self.config.persist_windows, self.config.warn_persist))
-        self._rate_high = {r: deque(maxlen=max(1, self.config.persist_windows, self.config.rate_persist)) for r in RATES}
+        depth = max(1, self.config.persist_windows, self.config.rate_persist)
+        self._rate_high = {r: deque(maxlen=depth) for r in RATES}
         self.rates = RateLimits(self.config)
         self.last: Assessment | None = None
 
