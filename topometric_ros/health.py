@@ -98,11 +98,14 @@ class Health:
         self.config = config or HealthConfig()
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
-        self._high: deque[bool] = deque(maxlen=max(1, self.config.persist_windows, self.config.warn_persist))
-        depth = max(1, self.config.persist_windows, self.config.rate_persist)
-        self._rate_high = {r: deque(maxlen=depth) for r in RATES}
+        self._high = self._recent(self.config.warn_persist)
+        self._rate_high = {r: self._recent(self.config.rate_persist) for r in RATES}
         self.rates = RateLimits(self.config)
         self.last: Assessment | None = None
+
+    def _recent(self, needed: int) -> deque[bool]:
+        """The flags a persistence rule counts: the last persist_windows windows (at least ``needed``)."""
+        return deque(maxlen=max(1, self.config.persist_windows, needed))
 
     def reset_clock(self) -> None:
         """Time jumped back: the baseline stays (same robot, same site); nothing else to forget."""
@@ -130,8 +133,8 @@ class Health:
         limits = self.rates.limits(result)
         for rate, (meaning, unit) in RATES.items():
             value = float(getattr(result, rate, float("nan")))
-            warn_at[rate], error_at[rate] = limits[rate]
-            (warn, error), high = limits[rate], self._rate_high[rate]
+            warn, error = warn_at[rate], error_at[rate] = limits[rate]
+            high = self._rate_high[rate]
             high.append(bool(np.isfinite(value) and warn > 0 and value >= warn))
             if not np.isfinite(value):
                 continue  # no co-plane group: already reported as CPV undefined
