@@ -129,6 +129,36 @@ def test_rpe_estimate_matches_the_rpe_of_poses_drifting_at_those_rates():
     assert got == pytest.approx(rpe(gt, est), rel=0.1)  # the small-error form leaves out the lever arm
 
 
+def _turning_track(times):
+    """Ground-truth sensor poses of a robot driving a 3 m/s arc turning 40 deg/s (map frame)."""
+    yaw = np.radians(40.0) * times
+    pos = np.stack([3.0 / np.radians(40.0) * np.sin(yaw), 3.0 / np.radians(40.0) * (1 - np.cos(yaw)), 1.0 + 0 * yaw], 1)
+    return np.stack([geometry.make_pose(geometry.rotvec_to_matrix([0, 0, a]), p) for a, p in zip(yaw, pos)])
+
+
+def test_true_drift_rates_read_a_window_frame_drift_exactly_and_average_out_jitter():
+    """The ground truth of the rates: an estimate whose window-frame error grows as R(ω t), v t reads |ω|
+    and |v| exactly on a turning track, whatever rigid frame the estimate is in; one pose off reads as the least-squares slope of a single
+    outlier, half of what the first and last pose alone would make of it."""
+    times = np.arange(10) * 0.1
+    gt = _turning_track(times)
+    omega, v = np.radians([0.6, -1.2, 2.0]), np.array([0.05, 0.12, -0.03])
+    err = np.stack([geometry.make_pose(geometry.rotvec_to_matrix(omega * t), v * t) for t in times])
+    est = gt[0] @ err @ geometry.inverse(gt[0]) @ gt  # est_0^-1 est_i = E_i gt_0^-1 gt_i
+    rot, trans = dr.true_drift_rates(gt, est, times)
+    assert rot == pytest.approx(np.degrees(np.linalg.norm(omega)), rel=1e-9)
+    assert trans == pytest.approx(np.linalg.norm(v), rel=1e-9)
+    moved = geometry.make_pose(geometry.rotvec_to_matrix([0.3, -0.2, 1.0]), [5.0, -2.0, 0.5])
+    assert dr.true_drift_rates(gt, moved @ est, times) == pytest.approx((rot, trans), rel=1e-9)
+    assert dr.true_drift_rates(gt, gt, times) == pytest.approx((0.0, 0.0), abs=1e-12)
+
+    late = gt.copy()
+    late[-1] = late[-1] @ geometry.make_pose(np.eye(3), [0.03, 0.0, 0.0])  # only the last pose 3 cm off
+    tc = times - times.mean()
+    assert dr.true_drift_rates(gt, late, times) == pytest.approx((0.0, 0.03 * tc[-1] / (tc @ tc)), abs=1e-12)
+    assert 0.03 * tc[-1] / (tc @ tc) < 0.5 * 0.03 / times[-1]  # 0.016 m/s; through the endpoints 0.033
+
+
 def test_absolute_rate_limits_raise_at_once_and_name_the_drift():
     h = Health(HealthConfig(rate_limits="absolute", rot_rate_warn=0.8, rot_rate_error=1.5, trans_rate_warn=0.05,
                             trans_rate_error=0.1))

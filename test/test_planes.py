@@ -192,6 +192,48 @@ def test_plane_quality_definitions():
     assert static_only["n_truth"] == 0 and np.isnan(static_only["recall"])
 
 
+def test_coplanar_recall_judges_a_plane_by_its_geometric_plane():
+    """Instances 0 and 1 lie in one geometric plane (a wall either side of a door, or two pillar faces in a
+    row), instance 2 in another. One plane joining 0 and 1 recalls both (strictly only the bigger one, its
+    majority instance); separate planes recall each either way; a plane mostly on another geometric plane
+    recalls nothing of it."""
+    labels = np.full(900, C.WALL, np.uint8)
+    instance = np.repeat([0, 1, 2], [400, 300, 200])
+    plane_of = np.array([0, 0, 1])
+    joined = np.where(instance < 2, 0, 1)
+    strict = plane_quality(joined, labels, instance)
+    coplanar = plane_quality(joined, labels, instance, plane_of=plane_of)
+    assert strict["missed"] == [1] and coplanar["missed"] == []
+    assert strict["purity"] == pytest.approx([4 / 7, 1.0]) and coplanar["purity"] == [1.0, 1.0]
+    apart = instance.copy()
+    assert plane_quality(apart, labels, instance)["recall"] == 1.0
+    assert plane_quality(apart, labels, instance, plane_of=plane_of)["recall"] == 1.0
+    wide = np.repeat([0, 1, 2], [400, 300, 600])
+    swallowed = np.where(wide == 1, 1, 2)  # 250 of instance 0's 400 points in instance 2's (bigger) plane ...
+    swallowed[:150] = 0  # ... the rest in a plane of its own: under 50 % either way
+    q = plane_quality(swallowed, np.full(1300, C.WALL, np.uint8), wide, plane_of=plane_of)
+    assert q["missed"] == [0] and sorted(q["purity"]) == pytest.approx([600 / 850, 1.0, 1.0])
+
+
+def test_surfaces_join_touching_coplanar_pieces_only():
+    """office1: the door wall's two pieces and lintel touch: one surface; its two free-standing pillars have
+    coplanar faces metres apart: one geometric plane, two surfaces."""
+    from topometric_ros.experiments.plane_quality import geometric_planes, surfaces
+    from topometric_ros.sim.scenes import make_scene
+
+    scene = make_scene("office1")
+    surface, geometric = surfaces(scene), geometric_planes(scene.planes, scene.instance_class)
+    door_wall = [i for i in range(len(scene.planes)) if scene.instance_class[i] == C.WALL
+                 and np.allclose(scene.planes[i], [1, 0, 0, -0.075], atol=1e-3)]
+    assert len(door_wall) == 3 and len(set(surface[door_wall])) == 1
+    pillars = np.flatnonzero(scene.instance_class == C.PILLAR)
+    rows = [g for g in set(geometric[pillars]) if np.count_nonzero(geometric[pillars] == g) == 2]
+    assert rows
+    for g in rows:
+        faces = pillars[geometric[pillars] == g]
+        assert surface[faces[0]] != surface[faces[1]]
+
+
 def test_two_parallel_walls_stay_apart():
     """A corridor: two parallel walls 3 m apart are two planes, not one, even with a generous merge gap."""
     pts, labels, ring = _plane_scan([0.0, -1.0, 0.0], 1.5, more=[([0.0, 1.0, 0.0], 1.5)])

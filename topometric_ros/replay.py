@@ -31,7 +31,7 @@ from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
-RECORD_FORMAT = 4  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed, turn rate and per-window rate limits
+RECORD_FORMAT = 5  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed, turn rate and per-window rate limits, 5 true rates as trends over all scans
 
 
 @dataclass
@@ -324,7 +324,8 @@ def _truth(path) -> dict | None:
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
     """Ground-truth columns of each window record (bags with ground truth): ``rpe`` (Eq. 4 over its consecutive
     scans) and the TRUE drift rates over the window, ``true_rot_rate`` (°/s) and ``true_trans_rate`` (m/s):
-    the error E = ΔT_gt⁻¹ ΔT_est between its first and last scan, its angle and translation over the span."""
+    the trend of the estimate's error against ground truth over its scans (drift_rate.true_drift_rates)."""
+    from .metrics.drift_rate import true_drift_rates
     from .metrics.rpe import rpe
 
     order = np.argsort(gt_stamps, kind="stable")
@@ -335,10 +336,8 @@ def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
         ok = bool(valid.all()) and len(stamps) > 1
         est = np.stack([p for _, p in poses])
         rec["rpe"] = rpe(gt @ extrinsic, est) if ok else float("nan")
-        err = geometry.inverse(geometry.inverse(gt[0] @ extrinsic) @ gt[-1] @ extrinsic) @ (geometry.inverse(est[0]) @ est[-1])
-        span = float(stamps[-1] - stamps[0]) if ok else float("nan")
-        rec["true_rot_rate"] = float(np.degrees(geometry.rotation_angle(err[:3, :3])) / span) if ok else float("nan")
-        rec["true_trans_rate"] = float(np.linalg.norm(err[:3, 3]) / span) if ok else float("nan")
+        rates = true_drift_rates(gt @ extrinsic, est, stamps) if ok else (float("nan"), float("nan"))
+        rec["true_rot_rate"], rec["true_trans_rate"] = rates
 
 
 def _summary(bag_path, monitor: Monitor, records: list[dict], feed: _Feed, notes: list[str], speed) -> dict:

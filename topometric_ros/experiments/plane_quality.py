@@ -14,35 +14,44 @@ from ..sensors import DEFAULT_SENSOR
 
 
 def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 200,
-                  static: tuple = C.STATIC) -> dict:
-    """Detected planes of one scan against the simulator's plane-instance ids.
+                  static: tuple = C.STATIC, plane_of: np.ndarray | None = None) -> dict:
+    """Detected planes of one scan against the simulator's plane-instance (or surface) ids.
 
     assign: (N,) plane index per point (−1 none), as ``detect_planes(..., return_inliers=True)`` gives.
-    labels, instance: (N,) ground-truth class and plane-instance id per point.
+    labels, instance: (N,) ground-truth class and unit id per point (plane instances, or :func:`surfaces`).
+    plane_of: (U,) optional id of the geometric plane each unit lies in; None = every unit its own.
 
-    Definitions. Ground-truth planes: instances with ≥ ``min_points`` points of a static class. A detected
-    plane's majority instance is the instance most of its inliers come from; its purity is that fraction.
-    A ground-truth plane is recalled when some detected plane has it as majority instance AND holds ≥ 50 %
-    of its points. Returns {'n_truth', 'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one
-    per detected plane), 'missed' (instance ids), 'n_planes'}.
+    Definitions. Ground-truth planes: units with ≥ ``min_points`` points of a static class. A detected
+    plane's majority is the geometric plane most of its inliers lie in (the unit itself without
+    ``plane_of``); its purity is that fraction. A unit is recalled when some detected plane whose majority
+    is the unit's geometric plane holds ≥ 50 % of the unit's points: a plane joining coplanar pieces seen
+    apart (two pillar faces in a row) recalls each piece it mostly covers. Returns {'n_truth',
+    'n_recalled', 'recall' (nan when n_truth = 0), 'purity' (list, one per detected plane), 'missed' (unit
+    ids), 'n_planes'}.
     """
     assign = np.asarray(assign)
     instance = np.asarray(instance).astype(np.int64)
+    plane_of = None if plane_of is None else np.asarray(plane_of, np.int64)
+    geometric = instance if plane_of is None else np.where(instance >= 0, plane_of[np.maximum(instance, 0)], -1)
     keep = np.isin(labels, static)
     ids, sizes = np.unique(instance[keep], return_counts=True)
     truth = ids[sizes >= min_points]
-    size_of = dict(zip(ids.tolist(), sizes.tolist()))
-    det = assign >= 0
-    pairs, overlap = np.unique(np.stack([assign[det].astype(np.int64), instance[det]], 1), axis=0,
-                               return_counts=True)
-    recalled, purity = set(), []
-    if len(pairs):
-        planes, starts = np.unique(pairs[:, 0], return_index=True)
+    det = np.flatnonzero(assign >= 0)
+    plane_ids, plane_idx = np.unique(assign[det], return_inverse=True)
+    majority, purity = {}, []
+    if len(det):
+        pairs, overlap = np.unique(np.stack([plane_idx, geometric[det]], 1), axis=0, return_counts=True)
+        starts = np.flatnonzero(np.r_[True, np.diff(pairs[:, 0]) != 0])
         for start, stop in zip(starts, list(starts[1:]) + [len(pairs)]):
             k = start + int(np.argmax(overlap[start:stop]))
             purity.append(float(overlap[k] / overlap[start:stop].sum()))
-            inst = int(pairs[k, 1])
-            if overlap[k] >= 0.5 * size_of.get(inst, np.inf):
+            majority[int(pairs[k, 0])] = int(pairs[k, 1])
+    recalled = set()
+    if len(det):
+        pairs, overlap = np.unique(np.stack([plane_idx, instance[det]], 1), axis=0, return_counts=True)
+        size_of = dict(zip(ids.tolist(), sizes.tolist()))
+        for (plane, inst), n in zip(pairs.tolist(), overlap.tolist()):
+            if n >= 0.5 * size_of.get(inst, np.inf) and majority[plane] == (inst if plane_of is None else plane_of[inst]):
                 recalled.add(inst)
     hit = [int(i) for i in truth if int(i) in recalled]
     return {"n_truth": int(len(truth)), "n_recalled": len(hit),
@@ -50,11 +59,11 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
             "missed": [int(i) for i in truth if int(i) not in recalled], "n_planes": len(purity)}
 
 
-def coplanar_surfaces(planes: np.ndarray, classes: np.ndarray, angle_deg: float = 1.0,
+def geometric_planes(planes: np.ndarray, classes: np.ndarray, angle_deg: float = 1.0,
                       distance: float = 0.03) -> np.ndarray:
-    """(I,) surface id of each plane instance: instances of one class lying in one plane (normals within
-    ``angle_deg``, same side, offsets within ``distance`` m) share an id. Two wall pieces either side of a door
-    are two instances but one surface, which the detector rightly gives as one plane (merge_across_gaps)."""
+    """(I,) geometric-plane id of each plane instance: instances of one class lying in one plane (normals
+    within ``angle_deg``, same side, offsets within ``distance`` m) share an id, touching or not: the two wall
+    pieces either side of a door, and the faces of a row of pillars."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -65,6 +74,39 @@ def coplanar_surfaces(planes: np.ndarray, classes: np.ndarray, angle_deg: float 
     return connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(len(d), len(d))), directed=False)[1]
 
 
+def surfaces(scene, touch: float = 0.05, spacing: float = 0.05) -> np.ndarray:
+    """(I,) surface id of each plane instance of ``scene``: static instances of one geometric plane
+    (:func:`geometric_planes`) that touch (edges within ``touch`` m, sampled every ``spacing`` m) are one
+    surface, as the two wall pieces either side of a door and the lintel joining them; coplanar pieces apart
+    (the faces of a row of pillars) stay separate surfaces, each to be found in its own right."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    geometric = geometric_planes(scene.planes, scene.instance_class)
+    static = np.isin(scene.instance_class, C.STATIC)
+    tri = scene.vertices[scene.triangles].astype(np.float64)  # (T, 3, 3)
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])  # (3T, 2, 3)
+    owner = np.tile(scene.tri_instance, 3)
+    steps = np.maximum(np.ceil(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1) / spacing), 1).astype(int)
+    frac = np.concatenate([np.arange(k + 1) / k for k in steps])
+    which = np.repeat(np.arange(len(edges)), steps + 1)
+    samples = edges[which, 0] + frac[:, None] * (edges[which, 1] - edges[which, 0])
+    sample_owner = owner[which]
+    pairs = []
+    keep = static[sample_owner]
+    for g in np.unique(geometric[static]):
+        mine = keep & (geometric[sample_owner] == g)
+        if len(np.unique(sample_owner[mine])) < 2:
+            continue
+        close = cKDTree(samples[mine]).query_pairs(touch, output_type="ndarray")
+        own = sample_owner[mine][close]
+        pairs.append(own[own[:, 0] != own[:, 1]])
+    i, j = np.concatenate(pairs).T if pairs else (np.zeros(0, int), np.zeros(0, int))
+    n = len(scene.planes)
+    return connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)[1]
+
+
 def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequence[int] = 0, min_points: int = 200,
                       progress: bool = True, sensor: str = DEFAULT_SENSOR) -> dict:
     """Plane quality and speed of ``config.detector`` on simulated scans (labels and ring given).
@@ -72,7 +114,8 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequenc
     For each scene and each trajectory seed: ``frames`` scans of ``sensor`` (simulated_frames(scene, frames,
     seed=seed, sensor=sensor));
     per scene, pooled over the seeds, the recall (recalled / ground-truth planes over all scans, see
-    :func:`plane_quality`), the median purity over all detected planes, planes per scan and the median
+    :func:`plane_quality`; ``recall`` per instance, ``surface_recall`` the headline: per :func:`surfaces`, a
+    plane's majority judged by geometric plane), the median purity over all detected planes, planes per scan and the median
     detection time per scan (ms, wall clock, this process); 'recall_per_seed' and 'worst_recall' show the
     spread between trajectories.
     Returns {'detector', 'frames', 'seeds', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
@@ -93,7 +136,9 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequenc
         truth = recalled = s_truth = s_recalled = 0
         purity, s_purity, n_planes, ms, per_seed = [], [], [], [], {}
         world = make_scene(scene)
-        surface = coplanar_surfaces(world.planes, world.instance_class)
+        surface = surfaces(world)
+        geometric = np.zeros(surface.max() + 1, np.int64)
+        geometric[surface] = geometric_planes(world.planes, world.instance_class)  # of each surface
         for s in seeds:
             sim, instances = simulated_frames(world, frames, seed=s, sensor=sensor)
             seed_truth = seed_recalled = 0
@@ -103,7 +148,7 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequenc
                 planes, assign = detect_planes(f.points, f.labels, f.ring, cfg, frame=i, return_inliers=True)
                 ms.append(1000 * (time.perf_counter() - t))
                 q = plane_quality(assign, f.labels, inst, min_points)
-                qs = plane_quality(assign, f.labels, surface[inst], min_points)
+                qs = plane_quality(assign, f.labels, surface[inst], min_points, plane_of=geometric)
                 seed_truth, seed_recalled = seed_truth + q["n_truth"], seed_recalled + q["n_recalled"]
                 s_truth, s_recalled = s_truth + qs["n_truth"], s_recalled + qs["n_recalled"]
                 purity += q["purity"]

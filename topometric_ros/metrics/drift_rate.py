@@ -152,3 +152,23 @@ def rpe_estimate(rot_rate_deg_s: float, trans_rate_m_s: float, times) -> float:
     if not len(dt) or not np.isfinite(rot_rate_deg_s) or not np.isfinite(trans_rate_m_s):
         return float("nan")
     return float(np.mean(dt) * np.hypot(np.sqrt(2.0) * np.radians(rot_rate_deg_s), trans_rate_m_s))
+
+
+def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, float]:
+    """(rotation deg/s, translation m/s) a window's poses truly drifted at: the quantity :func:`drift_rates`
+    estimates, from ground truth. gt, est (K, 4, 4) sensor poses of the window's scans at ``times`` (s).
+
+    Each scan's error in the WINDOW frame (the first scan's), E_i = (est_0⁻¹ est_i)(gt_0⁻¹ gt_i)⁻¹, maps a
+    true point to where the estimate puts it; the rates are the least-squares slopes (with intercept, as the
+    estimator's per-group means) of E_i's rotation vector and translation against time, so per-scan jitter
+    averages out instead of deciding the rate as it would through the first and last scan alone."""
+    from ..geometry import inverse, matrix_to_rotvec
+
+    gt, est = np.asarray(gt, np.float64), np.asarray(est, np.float64)
+    t = np.asarray(times, np.float64)
+    if len(t) < 2 or np.ptp(t) <= 0:
+        return float("nan"), float("nan")
+    err = (inverse(est[0]) @ est) @ inverse(inverse(gt[0]) @ gt)
+    tc = t - t.mean()
+    slope = tc @ np.concatenate([matrix_to_rotvec(err[:, :3, :3]), err[:, :3, 3]], axis=1) / (tc @ tc)
+    return float(np.degrees(np.linalg.norm(slope[:3]))), float(np.linalg.norm(slope[3:]))
