@@ -180,7 +180,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     feed.wall_s = time.perf_counter() - wall0  # reading and processing, up to the last window
     records = rec.records
     if feed.gt_stamps:
-        _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses), monitor.extrinsic)
+        to_sensor = monitor.static_tf.lookup(feed.gt_frame, monitor.sensor_frame) if feed.gt_frame else None
+        _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses),
+                 monitor.extrinsic if to_sensor is None else to_sensor)
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
                    segmentation=config.segmentation.mode, sensor=config.sensor.model or "read off each cloud",
@@ -199,6 +201,7 @@ class _Feed:
         self.monitor, self.rec, self.opt, self.speed = monitor, rec, opt, speed
         self.gt_stamps: list[float] = []
         self.gt_poses: list[np.ndarray] = []
+        self.gt_frame = ""  # the ground truth's child frame (its poses are of that frame)
         self.n_scans, self.first, self.last = 0, None, None
         self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
         self._stale = False
@@ -247,6 +250,7 @@ class _Feed:
                 s, pose = bag.odometry_pose(msg)
                 self.gt_stamps.append(s)
                 self.gt_poses.append(pose)
+                self.gt_frame = str(getattr(msg, "child_frame_id", "")) or self.gt_frame
             except (ValueError, AttributeError, TypeError):
                 pass
         elif topic == opt.tf_static_topic:
@@ -322,7 +326,8 @@ def _truth(path) -> dict | None:
 
 
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
-    """Ground-truth columns of each window record (bags with ground truth): ``rpe`` (Eq. 4 over its consecutive
+    """``extrinsic``: ground-truth child frame -> sensor frame (the estimate's window poses are sensor poses).
+    Ground-truth columns of each window record (bags with ground truth): ``rpe`` (Eq. 4 over its consecutive
     scans) and the TRUE drift rates over the window, ``true_rot_rate`` (°/s) and ``true_trans_rate`` (m/s):
     the trend of the estimate's error against ground truth over its scans (drift_rate.true_drift_rates)."""
     from .metrics.drift_rate import true_drift_rates
