@@ -237,7 +237,8 @@ def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
 def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error():
     """A window reading half the injected drift (1 °/s and 0.1 m/s of 2 °/s and 0.2 m/s) scores 0.5 on both
     rates and on rpe_estimate against the injected drift's own RPE; against a true RPE (the SLAM's jitter on
-    top) of twice that injected RPE it scores 0.25."""
+    top) of twice that injected RPE it scores 0.25, and against a true drift trend of twice the injected
+    rates (the SLAM's own drift on top) 0.25 on the rates and on the RPE that trend gives."""
     from topometric_ros.experiments.alarms import rate_accuracy
     from topometric_ros.metrics.drift_rate import rpe_estimate
 
@@ -245,9 +246,10 @@ def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error
     injected_rpe = rpe_estimate(2.0, 0.2, times)
     window = {"start": 20.0, "end": 20.9, "n_scans": 10, "rot_rate": 1.0, "trans_rate": 0.1,
               "rpe_estimate": rpe_estimate(1.0, 0.1, times), "rpe": 2 * injected_rpe,
-              "true_rot_rate": 2.0, "true_trans_rate": 0.2}
+              "true_rot_rate": 4.0, "true_trans_rate": 0.4}
     episode = {"start": 19.5, "end": 28.0, "rot_rate": np.radians(2.0), "trans_rate": 0.2}
     (row,) = rate_accuracy([window, {**window, "start": 30.0, "end": 30.9}], [episode])  # the 2nd lies outside
     assert row["rot_rate"] == pytest.approx(0.5) and row["trans_rate"] == pytest.approx(0.5)
     assert row["rpe_estimate"] == pytest.approx(0.5) and row["rpe_estimate_vs_true"] == pytest.approx(0.25)
-    assert row["rot_rate_vs_true"] == pytest.approx(0.5) and row["trans_rate_vs_true"] == pytest.approx(0.5)
+    assert row["rot_rate_vs_true"] == pytest.approx(0.25) and row["trans_rate_vs_true"] == pytest.approx(0.25)
+    assert row["rpe_estimate_vs_trend"] == pytest.approx(0.25)

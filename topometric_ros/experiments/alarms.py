@@ -298,8 +298,9 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
 def rate_accuracy(windows: list[dict], episodes: list[dict]) -> list[dict]:
     """Per episode: the median over the windows lying wholly inside it of each injected rate's reading divided
     by the injected rate (rotation °/s, translation m/s); of rpe_estimate divided by the RPE the injected drift
-    alone gives over the window's scans (``rpe_estimate``); and divided by the window's true RPE, which also
-    holds the SLAM's own error, drift and scan-to-scan jitter alike (``rpe_estimate_vs_true``)."""
+    alone gives over the window's scans (``rpe_estimate``), by the window's true RPE, which also holds the
+    SLAM's own error, drift and scan-to-scan jitter alike (``rpe_estimate_vs_true``), and by the RPE the
+    window's true drift trend gives (``rpe_estimate_vs_trend``: the same quantity from ground truth)."""
     from ..metrics.drift_rate import rpe_estimate
 
     out = []
@@ -319,6 +320,10 @@ def rate_accuracy(windows: list[dict], episodes: list[dict]) -> list[dict]:
         row["rpe_estimate"] = float(np.nanmedian(ratio)) if np.isfinite(ratio).any() else float("nan")
         rpe = [w.get("rpe_estimate", np.nan) / w["rpe"] for w in inside if w.get("rpe", 0) > 0]
         row["rpe_estimate_vs_true"] = float(np.nanmedian(rpe)) if rpe else float("nan")
+        trend = [w.get("rpe_estimate", np.nan) / x for w in inside
+                 if (x := rpe_estimate(w.get("true_rot_rate", np.nan), w.get("true_trans_rate", np.nan),
+                                       np.linspace(w["start"], w["end"], max(int(w.get("n_scans", 2)), 2)))) > 0]
+        row["rpe_estimate_vs_trend"] = float(np.nanmedian(trend)) if trend else float("nan")
         for rate in RATES:  # against the window's true drift (the injected one plus the SLAM's own)
             true = [w.get(rate, np.nan) / w[f"true_{rate}"] for w in inside if w.get(f"true_{rate}", 0) > 0]
             row[f"{rate}_vs_true"] = float(np.nanmedian(true)) if true else float("nan")
@@ -346,7 +351,7 @@ def _cells(rows: list[dict], free_bags: list[dict]) -> list[dict]:
                       "strict_warns_per_10min": 10 * strict / minutes if minutes else float("nan"),
                       **{k: float(np.nanmedian([a[k] for a in acc if k in a])) if any(k in a for a in acc)
                          else float("nan") for k in ("rot_rate", "trans_rate", "rpe_estimate", "rpe_estimate_vs_true",
-                                                     "rot_rate_vs_true", "trans_rate_vs_true")}})
+                                                     "rpe_estimate_vs_trend", "rot_rate_vs_true", "trans_rate_vs_true")}})
     return cells
 
 
@@ -685,14 +690,15 @@ def format_detection(table: dict) -> str:
 def format_cells(cells: list[dict], within: int) -> str:
     """The table by speed and estimate: detection, false WARN per 10 min, accuracy (median measured/injected)."""
     lines = [f"{'speed':>6} {'estimate':>8} {'detected':>9} {'false WARN':>16} {'strict':>7} {'rot':>6} {'trans':>6} "
-             f"{'rpe_est':>7} {'rpe_est':>7} {'rot':>6} {'trans':>6}  sensors",
+             f"{'rpe_est':>7} {'rpe_est':>7} {'rpe_est':>7} {'rot':>6} {'trans':>6}  sensors",
              f"{'m/s':>6} {'':>8} {f'<= {within} win':>9} {'per 10 min':>16} {'/10min':>7} {'/inj.':>6} {'/inj.':>6} "
-             f"{'/inj.':>7} {'/true':>7} {'/true':>6} {'/true':>6}"]
+             f"{'/inj.':>7} {'/true':>7} {'/trend':>7} {'/true':>6} {'/true':>6}"]
     for c in cells:
         lines.append(f"{c['speed']:>6g} {c['estimate']:>8} {c['detected']:>4}/{c['episodes']:<4} "
                      f"{c['false_warns']:>3} in {c['minutes']:4.1f} = {c['false_warns_per_10min']:4.2f} "
                      f"{c['strict_warns_per_10min']:>7.2f} {c['rot_rate']:>6.2f} {c['trans_rate']:>6.2f} "
                      f"{c['rpe_estimate']:>7.2f} {c.get('rpe_estimate_vs_true', float('nan')):>7.2f} "
+                     f"{c.get('rpe_estimate_vs_trend', float('nan')):>7.2f} "
                      f"{c['rot_rate_vs_true']:>6.2f} {c['trans_rate_vs_true']:>6.2f}  {', '.join(c['sensors'])}")
     return "\n".join(lines)
 
