@@ -138,8 +138,8 @@ def _turning_track(times):
 
 def test_true_drift_rates_read_a_window_frame_drift_exactly_and_average_out_jitter():
     """The ground truth of the rates: an estimate whose window-frame error grows as R(ω t), v t reads |ω|
-    and |v| exactly on a turning track, whatever rigid frame the estimate is in; one pose off reads as the least-squares slope of a single
-    outlier, half of what the first and last pose alone would make of it."""
+    and |v| exactly on a turning track, whatever map frame the estimate is in; one pose off reads as the
+    least-squares slope of a single outlier, about half of what the first and last pose alone make of it."""
     times = np.arange(10) * 0.1
     gt = _turning_track(times)
     omega, v = np.radians([0.6, -1.2, 2.0]), np.array([0.05, 0.12, -0.03])

@@ -132,6 +132,14 @@ def test_static_transform_chains_compose():
     tf.add_message(bag.make_tf(0.0, b, "/mount", "velodyne"))
     np.testing.assert_allclose(tf.lookup("base_link", "velodyne"), a @ b, atol=1e-12)
     assert tf.lookup("velodyne", "base_link") is None
+    # between: any two linked frames, downward and through a common ancestor (a sibling), else None
+    imu = geometry.yaw_pose(-0.3, 0.1, 0.2, 0.4)
+    tf.add_message(bag.make_tf(0.0, imu, "base_link", "imu"))
+    np.testing.assert_allclose(tf.between("base_link", "velodyne"), a @ b, atol=1e-12)
+    np.testing.assert_allclose(tf.between("velodyne", "base_link"), geometry.inverse(a @ b), atol=1e-12)
+    np.testing.assert_allclose(tf.between("imu", "velodyne"), geometry.inverse(imu) @ a @ b, atol=1e-12)
+    np.testing.assert_allclose(tf.between("velodyne", "velodyne"), np.eye(4), atol=1e-12)
+    assert tf.between("imu", "camera") is None
 
 
 def test_backwards_stamps_reset_the_window_cleanly():

@@ -213,6 +213,8 @@ def test_coplanar_recall_judges_a_plane_by_its_geometric_plane():
     swallowed[:150] = 0  # ... the rest in a plane of its own: under 50 % either way
     q = plane_quality(swallowed, np.full(1300, C.WALL, np.uint8), wide, plane_of=plane_of)
     assert q["missed"] == [0] and sorted(q["purity"]) == pytest.approx([600 / 850, 1.0, 1.0])
+    unknown = np.where(instance == 2, -1, instance)  # points of no instance (id -1) are never ground truth
+    assert plane_quality(joined, labels, unknown, plane_of=plane_of)["n_truth"] == 2
 
 
 def test_surfaces_join_touching_coplanar_pieces_only():
@@ -255,6 +257,9 @@ def test_detector_quality_is_pooled_over_trajectory_seeds():
     assert both["recalled"] == sum(r["recalled"] for r in single)
     assert both["recall_per_seed"] == {0: single[0]["recall"], 1: single[1]["recall"]}
     assert both["worst_recall"] == min(r["recall"] for r in single) <= both["recall"]
+    assert both["surface_truth"] == sum(r["surface_truth"] for r in single) > 0
+    assert both["surface_recall"] * both["surface_truth"] == pytest.approx(
+        sum(r["surface_recall"] * r["surface_truth"] for r in single))
 
 
 

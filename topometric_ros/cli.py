@@ -282,7 +282,8 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
             "min_purity", "surface_purity", "planes_per_scan", "ms_per_scan")
     rows = []
     print(f"detector {cfg.detector}, {args.frames} scans per scene and trajectory seed {args.seed}, ground-truth "
-          "planes: instances (and surfaces: touching coplanar instances as one) with >= 200 points; recall pooled over the seeds")
+          "planes: instances (and surfaces: touching coplanar instances as one) with >= 200 points; "
+          "recall pooled over the seeds")
     print(f"{'sensor':8s} {'scene':10s} {'recall':>8s} {'worst':>6s} {'planes':>11s} {'surface':>8s} {'med.purity':>11s} "
           f"{'planes/scan':>12s} {'ms/scan':>8s}")
     for name in args.sensor:

@@ -159,6 +159,20 @@ class StaticTransforms:
             pose = step @ pose
         return None
 
+    def between(self, frame: str, other: str) -> np.ndarray | None:
+        """4×4 pose of ``other`` in ``frame`` through their nearest common ancestor (siblings too), None when
+        the two frames share no ancestor."""
+        ancestor, seen = other.lstrip("/"), set()
+        for _ in range(64):
+            up = self.lookup(ancestor, frame)
+            if up is not None:
+                return geometry.inverse(up) @ self.lookup(ancestor, other)
+            if ancestor in seen or ancestor not in self._parent:
+                return None
+            seen.add(ancestor)
+            ancestor = self._parent[ancestor][0]
+        return None
+
 
 class Monitor:
     """The drift monitor. Feed ``add_cloud``/``add_scan`` and ``add_odometry``/``add_pose`` in any order.

@@ -31,7 +31,9 @@ from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
-RECORD_FORMAT = 5  # fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed, turn rate and per-window rate limits, 5 true rates as trends over all scans
+#: fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed,
+#: turn rate and per-window rate limits, 5 the true rates as trends over all scans
+RECORD_FORMAT = 5
 
 
 @dataclass
@@ -180,7 +182,10 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     feed.wall_s = time.perf_counter() - wall0  # reading and processing, up to the last window
     records = rec.records
     if feed.gt_stamps:
-        to_sensor = monitor.static_tf.lookup(feed.gt_frame, monitor.sensor_frame) if feed.gt_frame else None
+        to_sensor = monitor.static_tf.between(feed.gt_frame, monitor.sensor_frame) if feed.gt_frame else None
+        if to_sensor is None:
+            notes.append(f"ground truth frame {feed.gt_frame or '(none)'} not linked to the sensor frame "
+                         f"{monitor.sensor_frame or '(none)'} in /tf_static: compared through the odometry extrinsic")
         _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses),
                  monitor.extrinsic if to_sensor is None else to_sensor)
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)

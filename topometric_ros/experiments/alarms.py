@@ -351,7 +351,8 @@ def _cells(rows: list[dict], free_bags: list[dict]) -> list[dict]:
                       "strict_warns_per_10min": 10 * strict / minutes if minutes else float("nan"),
                       **{k: float(np.nanmedian([a[k] for a in acc if k in a])) if any(k in a for a in acc)
                          else float("nan") for k in ("rot_rate", "trans_rate", "rpe_estimate", "rpe_estimate_vs_true",
-                                                     "rpe_estimate_vs_trend", "rot_rate_vs_true", "trans_rate_vs_true")}})
+                                                     "rpe_estimate_vs_trend", "rot_rate_vs_true",
+                                                     "trans_rate_vs_true")}})
     return cells
 
 

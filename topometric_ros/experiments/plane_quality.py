@@ -21,7 +21,7 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
     labels, instance: (N,) ground-truth class and unit id per point (plane instances, or :func:`surfaces`).
     plane_of: (U,) optional id of the geometric plane each unit lies in; None = every unit its own.
 
-    Definitions. Ground-truth planes: units with ≥ ``min_points`` points of a static class. A detected
+    Definitions. Ground-truth planes: units (ids ≥ 0) with ≥ ``min_points`` points of a static class. A detected
     plane's majority is the geometric plane most of its inliers lie in (the unit itself without
     ``plane_of``); its purity is that fraction. A unit is recalled when some detected plane whose majority
     is the unit's geometric plane holds ≥ 50 % of the unit's points: a plane joining coplanar pieces seen
@@ -33,11 +33,11 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
     instance = np.asarray(instance).astype(np.int64)
     plane_of = None if plane_of is None else np.asarray(plane_of, np.int64)
     geometric = instance if plane_of is None else np.where(instance >= 0, plane_of[np.maximum(instance, 0)], -1)
-    keep = np.isin(labels, static)
+    keep = np.isin(labels, static) & (instance >= 0)
     ids, sizes = np.unique(instance[keep], return_counts=True)
     truth = ids[sizes >= min_points]
     det = np.flatnonzero(assign >= 0)
-    plane_ids, plane_idx = np.unique(assign[det], return_inverse=True)
+    _, plane_idx = np.unique(assign[det], return_inverse=True)
     majority, purity = {}, []
     if len(det):
         pairs, overlap = np.unique(np.stack([plane_idx, geometric[det]], 1), axis=0, return_counts=True)
@@ -51,7 +51,8 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
         pairs, overlap = np.unique(np.stack([plane_idx, instance[det]], 1), axis=0, return_counts=True)
         size_of = dict(zip(ids.tolist(), sizes.tolist()))
         for (plane, inst), n in zip(pairs.tolist(), overlap.tolist()):
-            if n >= 0.5 * size_of.get(inst, np.inf) and majority[plane] == (inst if plane_of is None else plane_of[inst]):
+            own = inst if plane_of is None or inst < 0 else plane_of[inst]
+            if n >= 0.5 * size_of.get(inst, np.inf) and majority[plane] == own:
                 recalled.add(inst)
     hit = [int(i) for i in truth if int(i) in recalled]
     return {"n_truth": int(len(truth)), "n_recalled": len(hit),
@@ -60,7 +61,7 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
 
 
 def geometric_planes(planes: np.ndarray, classes: np.ndarray, angle_deg: float = 1.0,
-                      distance: float = 0.03) -> np.ndarray:
+                     distance: float = 0.03) -> np.ndarray:
     """(I,) geometric-plane id of each plane instance: instances of one class lying in one plane (normals
     within ``angle_deg``, same side, offsets within ``distance`` m) share an id, touching or not: the two wall
     pieces either side of a door, and the faces of a row of pillars."""
@@ -115,9 +116,9 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequenc
     seed=seed, sensor=sensor));
     per scene, pooled over the seeds, the recall (recalled / ground-truth planes over all scans, see
     :func:`plane_quality`; ``recall`` per instance, ``surface_recall`` the headline: per :func:`surfaces`, a
-    plane's majority judged by geometric plane), the median purity over all detected planes, planes per scan and the median
-    detection time per scan (ms, wall clock, this process); 'recall_per_seed' and 'worst_recall' show the
-    spread between trajectories.
+    plane's majority judged by geometric plane), the median purity over all detected planes, planes per
+    scan and the median detection time per scan (ms, wall clock, this process); 'recall_per_seed' and
+    'worst_recall' show the spread between trajectories.
     Returns {'detector', 'frames', 'seeds', 'scenes': {name: summary}, 'scans': [per-scan rows]}.
     """
     import time

@@ -155,8 +155,9 @@ def rpe_estimate(rot_rate_deg_s: float, trans_rate_m_s: float, times) -> float:
 
 
 def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, float]:
-    """(rotation deg/s, translation m/s) a window's poses truly drifted at: the quantity :func:`drift_rates`
-    estimates, from ground truth. gt, est (K, 4, 4) sensor poses of the window's scans at ``times`` (s).
+    """(rotation deg/s, translation m/s) a window's poses truly drifted at, from ground truth: what
+    :func:`drift_rates` estimates, all of it (drift_rates sees only the directions its planes constrain).
+    gt, est (K, 4, 4) sensor poses of the window's scans at ``times`` (s); NaN, NaN for < 2 scans or no span.
 
     Each scan's error in the WINDOW frame (the first scan's), E_i = (est_0⁻¹ est_i)(gt_0⁻¹ gt_i)⁻¹, maps a
     true point to where the estimate puts it; the rates are the least-squares slopes (with intercept, as the
