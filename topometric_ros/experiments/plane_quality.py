@@ -86,22 +86,24 @@ def surfaces(scene, touch: float = 0.05, spacing: float = 0.05) -> np.ndarray:
 
     geometric = geometric_planes(scene.planes, scene.instance_class)
     static = np.isin(scene.instance_class, C.STATIC)
-    tri = scene.vertices[scene.triangles].astype(np.float64)  # (T, 3, 3)
+    mine = static[scene.tri_instance]
+    tri = scene.vertices[scene.triangles[mine]].astype(np.float64)  # (T, 3, 3), static triangles
     edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])  # (3T, 2, 3)
-    owner = np.tile(scene.tri_instance, 3)
+    owner = np.tile(scene.tri_instance[mine], 3)
     steps = np.maximum(np.ceil(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1) / spacing), 1).astype(int)
-    frac = np.concatenate([np.arange(k + 1) / k for k in steps])
     which = np.repeat(np.arange(len(edges)), steps + 1)
+    first = np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
+    frac = (np.arange(len(which)) - first) / steps[which]
     samples = edges[which, 0] + frac[:, None] * (edges[which, 1] - edges[which, 0])
     sample_owner = owner[which]
+    order = np.argsort(geometric[sample_owner], kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(geometric[sample_owner][order])) + 1)
     pairs = []
-    keep = static[sample_owner]
-    for g in np.unique(geometric[static]):
-        mine = keep & (geometric[sample_owner] == g)
-        if len(np.unique(sample_owner[mine])) < 2:
-            continue
-        close = cKDTree(samples[mine]).query_pairs(touch, output_type="ndarray")
-        own = sample_owner[mine][close]
+    for group in groups:
+        if len(group) == 0 or np.all(sample_owner[group] == sample_owner[group[0]]):
+            continue  # one instance alone in its geometric plane
+        close = cKDTree(samples[group]).query_pairs(touch, output_type="ndarray")
+        own = sample_owner[group][close]
         pairs.append(own[own[:, 0] != own[:, 1]])
     i, j = np.concatenate(pairs).T if pairs else (np.zeros(0, int), np.zeros(0, int))
     n = len(scene.planes)
