@@ -42,7 +42,14 @@ def test_episode_hits_count_alarms_within_the_first_windows_after_the_start():
     assert hit["latency_windows"] == 2 and not hit["detected"]  # alarm in window 3 = 2 windows late
     assert episode_hits(recs, ep, within=3)[0]["detected"]
     assert episode_hits(recs, [{"start": 2.5, "end": 4.0}], within=2)[0] == {
-        "start": 2.5, "end": 4.0, "latency_windows": 1, "detected": True, "covered": True}
+        "start": 2.5, "end": 4.0, "latency_windows": 1, "detected": True, "truly_over": False, "covered": True}
+    # truly_over: the estimate's true drift passed a WARN limit in one of the first ``within`` windows
+    for r in recs:
+        r.update(true_rot_rate=0.1, rot_rate_warn_at=1.0, true_trans_rate=0.01, trans_rate_warn_at=0.1)
+    assert not episode_hits(recs, ep, within=2)[0]["truly_over"]
+    recs[3]["true_trans_rate"] = 0.2  # window 3: the third after the start, outside the first two
+    assert not episode_hits(recs, ep, within=2)[0]["truly_over"]
+    assert episode_hits(recs, ep, within=3)[0]["truly_over"]
 
 
 def scan(frame, config, segmenter=None, index=-1):
