@@ -344,9 +344,9 @@ def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:
         stamps = np.array([s for s, _ in poses])
         gt, valid = geometry.interpolate_poses(gt_stamps, gt_poses, stamps)
         ok = bool(valid.all()) and len(stamps) > 1
-        est = np.stack([p for _, p in poses])
-        rec["rpe"] = rpe(gt @ extrinsic, est) if ok else float("nan")
-        rates = true_drift_rates(gt @ extrinsic, est, stamps) if ok else (float("nan"), float("nan"))
+        est, gt_sensor = np.stack([p for _, p in poses]), gt @ extrinsic
+        rec["rpe"] = rpe(gt_sensor, est) if ok else float("nan")
+        rates = true_drift_rates(gt_sensor, est, stamps) if ok else (float("nan"), float("nan"))
         rec["true_rot_rate"], rec["true_trans_rate"] = rates
 
 

@@ -319,17 +319,17 @@ def rate_accuracy(windows: list[dict], episodes: list[dict]) -> list[dict]:
         for rate, injected in (("rot_rate", np.degrees(ep["rot_rate"])), ("trans_rate", ep["trans_rate"])):
             if injected > 0:
                 row[rate] = float(np.nanmedian([w.get(rate, np.nan) for w in inside])) / injected
-        ratio = []
+        ratio, trend = [], []
         for w in inside:
             times = np.linspace(w["start"], w["end"], max(int(w.get("n_scans", 2)), 2))
             injected = rpe_estimate(np.degrees(ep["rot_rate"]), ep["trans_rate"], times)
             ratio.append(w.get("rpe_estimate", np.nan) / injected if injected > 0 else np.nan)
+            true = rpe_estimate(w.get("true_rot_rate", np.nan), w.get("true_trans_rate", np.nan), times)
+            if true > 0:
+                trend.append(w.get("rpe_estimate", np.nan) / true)
         row["rpe_estimate"] = float(np.nanmedian(ratio)) if np.isfinite(ratio).any() else float("nan")
         rpe = [w.get("rpe_estimate", np.nan) / w["rpe"] for w in inside if w.get("rpe", 0) > 0]
         row["rpe_estimate_vs_true"] = float(np.nanmedian(rpe)) if rpe else float("nan")
-        trend = [w.get("rpe_estimate", np.nan) / x for w in inside
-                 if (x := rpe_estimate(w.get("true_rot_rate", np.nan), w.get("true_trans_rate", np.nan),
-                                       np.linspace(w["start"], w["end"], max(int(w.get("n_scans", 2)), 2)))) > 0]
         row["rpe_estimate_vs_trend"] = float(np.nanmedian(trend)) if trend else float("nan")
         for rate in RATES:  # against the window's true drift (the injected one plus the SLAM's own)
             true = [w.get(rate, np.nan) / w[f"true_{rate}"] for w in inside if w.get(f"true_{rate}", 0) > 0]

@@ -48,10 +48,10 @@ def plane_quality(assign: np.ndarray, labels: np.ndarray, instance: np.ndarray, 
             majority[int(pairs[k, 0])] = int(pairs[k, 1])
     recalled = set()
     if len(det):
-        pairs, overlap = np.unique(np.stack([plane_idx, instance[det]], 1), axis=0, return_counts=True)
+        triples = np.stack([plane_idx, instance[det], geometric[det]], 1)  # geometric: a function of instance
+        pairs, overlap = np.unique(triples, axis=0, return_counts=True)
         size_of = dict(zip(ids.tolist(), sizes.tolist()))
-        for (plane, inst), n in zip(pairs.tolist(), overlap.tolist()):
-            own = inst if plane_of is None or inst < 0 else plane_of[inst]
+        for (plane, inst, own), n in zip(pairs.tolist(), overlap.tolist()):
             if n >= 0.5 * size_of.get(inst, np.inf) and majority[plane] == own:
                 recalled.add(inst)
     hit = [int(i) for i in truth if int(i) in recalled]
@@ -75,16 +75,18 @@ def geometric_planes(planes: np.ndarray, classes: np.ndarray, angle_deg: float =
     return connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(len(d), len(d))), directed=False)[1]
 
 
-def surfaces(scene, touch: float = 0.05, spacing: float = 0.05) -> np.ndarray:
+def surfaces(scene, touch: float = 0.05, spacing: float = 0.05, geometric: np.ndarray | None = None) -> np.ndarray:
     """(I,) surface id of each plane instance of ``scene``: static instances of one geometric plane
     (:func:`geometric_planes`) that touch (edges within ``touch`` m, sampled every ``spacing`` m) are one
     surface, as the two wall pieces either side of a door and the lintel joining them; coplanar pieces apart
-    (the faces of a row of pillars) stay separate surfaces, each to be found in its own right."""
+    (the faces of a row of pillars) stay separate surfaces, each to be found in its own right. ``geometric``:
+    :func:`geometric_planes` of the scene when the caller has it already."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    geometric = geometric_planes(scene.planes, scene.instance_class)
+    if geometric is None:
+        geometric = geometric_planes(scene.planes, scene.instance_class)
     static = np.isin(scene.instance_class, C.STATIC)
     mine = static[scene.tri_instance]
     tri = scene.vertices[scene.triangles[mine]].astype(np.float64)  # (T, 3, 3), static triangles
@@ -139,9 +141,10 @@ def evaluate_detector(scenes, frames: int = 20, config=None, seed: int | Sequenc
         truth = recalled = s_truth = s_recalled = 0
         purity, s_purity, n_planes, ms, per_seed = [], [], [], [], {}
         world = make_scene(scene)
-        surface = surfaces(world)
+        of_instance = geometric_planes(world.planes, world.instance_class)
+        surface = surfaces(world, geometric=of_instance)
         geometric = np.zeros(surface.max() + 1, np.int64)
-        geometric[surface] = geometric_planes(world.planes, world.instance_class)  # of each surface
+        geometric[surface] = of_instance  # of each surface
         for s in seeds:
             sim, instances = simulated_frames(world, frames, seed=s, sensor=sensor)
             seed_truth = seed_recalled = 0
