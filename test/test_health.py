@@ -124,6 +124,21 @@ def test_undefined_metrics_and_few_planes_warn():
     assert h.assess(r).level == "WARN" and "too few planes" in r.message
 
 
+def test_a_scan_that_lines_up_with_no_other_is_a_pose_jump_at_once():
+    """agreement under agreement_warn: WARN from the first window, named; at the limit, NaN or with the rule
+    off (0): no alarm."""
+    def judged(agreement, **cfg):
+        r = result()
+        r.agreement = agreement
+        Health(HealthConfig(**cfg)).assess(r)
+        return r
+
+    low = judged(0.3)
+    assert low.level == "WARN" and low.message.startswith("pose jump") and "30%" in low.message
+    for quiet in (judged(0.4), judged(float("nan")), judged(0.3, agreement_warn=0.0)):
+        assert quiet.level == "OK" and "pose jump" not in quiet.message
+
+
 def test_stale_in_any_clock():
     h = Health(HealthConfig(stale_after_s=5.0))
     assert h.stale(100.0, 99.0, 99.5) is None

@@ -119,13 +119,17 @@ def test_score_window_on_ground_truth_poses(processed, labels_config):
     assert result.n_planes == sum(len(s.planes) for s in processed)
     assert result.n_groups >= 3 and result.n_clusters >= 2
     assert np.isfinite(result.pne) and 0 < result.cpv < 0.01 ** 2 * 4  # lidar noise is ~1 cm
+    assert 0.9 <= result.agreement <= 1.0  # right poses: every scan's planes are seen in place by another
     assert result.mme is None and {"transform", "pne", "cpv", "total"} <= set(result.timings)
 
 
-def test_score_window_without_planes_gives_nan(frames, labels_config):
+def test_score_window_without_planes_gives_nan(frames, processed, labels_config):
     empty = [ProcessedScan(f.stamp, f.pose, []) for f in frames[:3]]
     result = score_window(empty, labels_config)
     assert np.isnan(result.pne) and np.isnan(result.cpv) and result.n_planes == result.n_groups == 0
+    assert np.isnan(result.agreement)
+    one = score_window(processed[:1], labels_config)  # planes, but no other scan to agree with: no group
+    assert one.n_groups == 0 and np.isnan(one.agreement)
     with pytest.raises(ValueError):
         score_window([], labels_config)
 

@@ -212,3 +212,58 @@ def test_cpv_rises_with_translation_noise(office_scans):
     levels = [0.0, 0.01, 0.02, 0.04, 0.07, 0.1]  # m (noise experiment: 0.05 m × scale 1..2)
     cpv = sweep(office_scans, levels, rot=False)[:, 1]
     assert spearmanr(levels, cpv).statistic >= 0.9
+
+
+# ---------------------------------------------------------------- scan agreement
+def _jumped(scans, k, rotvec_deg):
+    """The scans with scan k's pose rotated by ``rotvec_deg`` about its own sensor origin (a pose jump)."""
+    jump = geometry.make_pose(geometry.rotvec_to_matrix(np.radians(rotvec_deg)), np.zeros(3))
+    return [ProcessedScan(s.stamp, s.pose @ jump if i == k else s.pose, s.planes) for i, s in enumerate(scans)]
+
+
+def _shares(scans):
+    """Each scan's agreement (cpv.scan_agreement) in the window of ``scans``."""
+    from topometric_ros.pipeline import window_planes
+
+    wp = window_planes(scans, geometry.relative_to_first(np.stack([s.pose for s in scans])))
+    groups = cpv_mod.coplane_groups(wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts)
+    return cpv_mod.scan_agreement(groups, wp.scans, wp.counts, len(scans))
+
+
+def test_scan_agreement_is_the_share_a_jumped_scan_keeps_in_place(office_scans):
+    """Right poses: every scan's planes are seen in place by another scan (agreement near 1, no alarm). A
+    20° yaw of one scan about its sensor leaves exactly its horizontal planes (floor, ceiling) in place: its
+    agreement is their share of its inliers (here 6 %: walls carry most of them; office1 is level, with no
+    plane tilted 10-30° that a yaw would keep inside the angle gate). A 30° tilt and yaw leaves none: WARN
+    "pose jump" at once."""
+    from topometric_ros.health import Health
+
+    right = score_window(office_scans, Config())
+    assert right.agreement >= 0.9
+    Health().assess(right)
+    assert "pose jump" not in right.message
+    planes = office_scans[2].planes
+    horizontal = sum(p.count for p in planes if abs(p.normal[2]) > math.cos(math.radians(10)))
+    yawed = score_window(_jumped(office_scans, 2, [0, 0, 20]), Config())
+    assert 0 < yawed.agreement == pytest.approx(horizontal / sum(p.count for p in planes), abs=1e-9)
+    assert yawed.agreement == pytest.approx(_shares(_jumped(office_scans, 2, [0, 0, 20]))[2], abs=1e-12)
+    lost = score_window(_jumped(office_scans, 2, [30, 0, 30]), Config())
+    assert lost.agreement < Config().health.agreement_warn
+    assert Health().assess(lost).level == "WARN" and "pose jump" in lost.message
+    # the rate fit drops such a scan: the rates barely move
+    assert lost.rot_rate < right.rot_rate + 0.5
+
+
+def test_scan_agreement_counts_inliers_in_groups_per_scan_and_skips_scans_with_few_planes(rng):
+    wall = [fit_plane(plane_points(rng, n, 2.0, 0.01), C.WALL) for n in (400, 300, 600)]
+    far = fit_plane(plane_points(rng, 100, 5.0, 0.01), C.WALL)  # seen by scan 1 only
+    planes, scans = wall + [far], [0, 1, 2, 1]
+    arrays = planes_arrays(planes, scans)
+    groups = cpv_mod.coplane_groups(*arrays)
+    shares = cpv_mod.scan_agreement(groups, scans, arrays[-1], 4, min_planes=1)
+    np.testing.assert_allclose(shares[:3], [1.0, 300 / 400, 1.0])
+    assert np.isnan(shares[3])  # no planes
+    # by default a scan needs 3 planes to be judged (a truncated cloud is not a pose jump): none here
+    assert np.isnan(cpv_mod.scan_agreement(groups, scans, arrays[-1], 4)).all()
+    assert np.isnan(cpv_mod.window_agreement(groups, scans, arrays[-1], 4))
+    assert np.isnan(cpv_mod.window_agreement([], scans, arrays[-1], 4))

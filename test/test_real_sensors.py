@@ -50,3 +50,5 @@ def test_the_bag_with_poses_gives_its_window_and_loses_no_scan(tmp_path):
     assert res.summary["error"] == "" and res.summary["windows"] == 1
     assert c["scans_processed"] == 3 and c["dropped_scans"] == 0 and c["scans_deskewed"] == 3
     assert res.windows[0]["n_planes"] > 100
+    # KISS-ICP's poses of real scans line up (0.93 of the worst scan's plane inliers): no pose jump
+    assert res.windows[0]["agreement"] > 0.8 and "pose jump" not in res.windows[0]["message"]

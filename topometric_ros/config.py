@@ -134,6 +134,7 @@ class HealthConfig:
     trans_rate_warn: float = 0.05  # m/s, absolute translation drift limit -> WARN at once (rate_limits absolute; 0 = off)
     trans_rate_error: float = 0.1  # m/s -> ERROR (rate_limits absolute; 0 = off)
     min_planes: int = 3  # fewer planes than this in a window -> WARN (metrics unreliable)
+    agreement_warn: float = 0.4  # a scan whose plane inliers another scan sees in the same place fall below this share -> WARN at once (a pose jump, lost track; 0 = off)
 
 
 @dataclass

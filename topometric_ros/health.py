@@ -17,6 +17,9 @@ limits (RateLimits) act from the first window; a rate at its ERROR limit alarms 
 ERROR (relative limits) once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows: a
 SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once.
 They carry most detections; the sigma alarms catch inconsistency without a trend (pose noise, jumps).
+A scan placed off by more than the co-plane gates joins no co-plane group, so the robust rate fit never sees
+it: its ``agreement`` (the share of its plane inliers that another scan sees in the same place; cpv.py) below
+``agreement_warn`` raises WARN at once ("pose jump"): a SLAM that jumped or lost track.
 health.warn_sigma is calibrated on simulated calibration bags disjoint from the evaluation ones
 (``topometric alarms --calibrate``, alarms.py).
 
@@ -177,6 +180,11 @@ class Health:
                 notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
                              f"{sum(self._high)} of {c.warn_persist} windows needed")
         self.rates.learn(result)
+        agreement = float(getattr(result, "agreement", float("nan")))
+        if c.agreement_warn > 0 and agreement < c.agreement_warn:  # NaN (no co-plane group) never alarms
+            level = _worse(level, "WARN")
+            alarms.append(f"pose jump: a scan lines up with the others for {agreement:.0%} of its plane inliers "
+                          f"(limit {c.agreement_warn:.0%})")
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
             alarms.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
@@ -341,6 +349,7 @@ def window_values(result: Any, counters: Mapping[str, int] | None = None,
         if getattr(result, name, None) is not None:
             values[name] = getattr(result, name)
     values.update(n_planes=result.n_planes, n_groups=result.n_groups,
+                  agreement=getattr(result, "agreement", float("nan")),
                   window_start=result.stamps[0] if result.stamps else float("nan"),
                   window_end=result.stamps[-1] if result.stamps else float("nan"),
                   latency_ms=result.timings.get("latency", float("nan")))

@@ -65,7 +65,10 @@ class WindowResult:
     rpe_estimate: the RPE (Eq. 4) those rates give over the window's consecutive scans. speed (m/s) and
     turn_rate (deg/s): the sensor's motion over the window by the SLAM poses (what relative limits scale with).
     n_planes: planes in the window; n_groups: CPV co-plane groups; n_clusters: PNE normal clusters.
-    pne / cpv / rates are NaN when the window has no normal cluster / co-plane group. timings: ms per metric.
+    agreement: the lowest share, over the window's scans, of a scan's plane inliers that another scan
+    sees in the same place (cpv.window_agreement; 0-1, low for a scan off by a pose jump).
+    pne / cpv / rates / agreement are NaN when the window has no normal cluster / co-plane group.
+    timings: ms per metric.
 
     level / message are filled by health.py (OK, WARN, ERROR, STALE)."""
 
@@ -80,6 +83,7 @@ class WindowResult:
     rpe_estimate: float = float("nan")
     speed: float = float("nan")
     turn_rate: float = float("nan")
+    agreement: float = float("nan")
     mme: float | None = None
     mpv: float | None = None
     mom: float | None = None
@@ -249,7 +253,8 @@ def window_planes(scans: Sequence[ProcessedScan], poses: np.ndarray) -> WindowPl
 
 @dataclass
 class PlaneScores:
-    """What the window's planes give: pne (nats), cpv (m²), drift rates (deg/s, m/s), counts."""
+    """What the window's planes give: pne (nats), cpv (m²), drift rates (deg/s, m/s), counts, and the lowest
+    scan agreement (0-1, see WindowResult)."""
 
     pne: float
     cpv: float
@@ -257,6 +262,7 @@ class PlaneScores:
     trans_rate: float
     n_clusters: int
     n_groups: int
+    agreement: float = float("nan")
 
 
 def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None) -> PlaneScores:
@@ -271,9 +277,10 @@ def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, fl
         groups = cpv_mod.coplane_groups(wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts,
                                         m.cpv_angle_deg, m.cpv_epsilon)
         cpv = cpv_mod.cpv_of_groups(groups)
+        agreement = cpv_mod.window_agreement(groups, wp.scans, wp.counts, len(times))
     with timer("rates"):
         rot, trans = drift_mod.drift_rates(groups, wp.scans, wp.normals, wp.means, wp.counts, times)
-    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups))
+    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement)
 
 
 def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult:
@@ -294,7 +301,7 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
                           rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), speed=speed,
-                          turn_rate=turn_rate, timings=timings)
+                          turn_rate=turn_rate, agreement=ps.agreement, timings=timings)
     if config.metrics.baselines:
         _baselines(result, scans, poses, config)
     timings["total"] = 1000.0 * (time.perf_counter() - start)

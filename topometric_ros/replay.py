@@ -32,8 +32,8 @@ from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 #: fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed,
-#: turn rate and per-window rate limits, 5 the true rates as trends over all scans
-RECORD_FORMAT = 5
+#: turn rate and per-window rate limits, 5 the true rates as trends over all scans, 6 the scan agreement
+RECORD_FORMAT = 6
 
 
 @dataclass
@@ -108,7 +108,7 @@ class _Recorder:
             if getattr(result, name) is not None:
                 rec[name] = getattr(result, name)
         rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
-        rec.update(speed=result.speed, turn_rate=result.turn_rate)
+        rec.update(speed=result.speed, turn_rate=result.turn_rate, agreement=result.agreement)
         rec.update(assessment_fields(a))
         rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})
         counters = m.counters

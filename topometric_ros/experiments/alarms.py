@@ -153,7 +153,7 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
     h, out = Health(health), []
     for r in records:
         res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan),
-                      r.get("speed", np.nan), r.get("turn_rate", np.nan))
+                      r.get("speed", np.nan), r.get("turn_rate", np.nan), r.get("agreement", np.nan))
         a = h.assess(res)
         out.append({**r, "level": res.level, "message": res.message, **assessment_fields(a)})
     return out
@@ -163,10 +163,10 @@ class _Window:
     """The fields of a WindowResult health.py reads."""
 
     def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float,
-                 speed: float = np.nan, turn_rate: float = np.nan):
+                 speed: float = np.nan, turn_rate: float = np.nan, agreement: float = np.nan):
         self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
         self.rot_rate, self.trans_rate = float(rot_rate), float(trans_rate)
-        self.speed, self.turn_rate = float(speed), float(turn_rate)
+        self.speed, self.turn_rate, self.agreement = float(speed), float(turn_rate), float(agreement)
         self.level, self.message = "OK", ""
 
 

@@ -144,6 +144,33 @@ def coplane_groups(classes, scans, normals, means, scatters, counts, angle_deg: 
             for m, v, e in zip(chosen, vals, vecs)]
 
 
+MIN_SCAN_PLANES = 3  # a scan with fewer planes is not judged by its agreement (a truncated cloud, a blank view)
+
+
+def scan_agreement(groups: list[CoPlaneGroup], scans, counts, n_scans: int,
+                   min_planes: int = MIN_SCAN_PLANES) -> np.ndarray:
+    """(n_scans,) share of each scan's plane inliers that lie in a co-plane group, i.e. on a plane that
+    another scan of the window sees in the same place: about 1 when the poses agree (a big plane is seen
+    by the neighbouring scans), low for a scan placed off by more than the gates (angle, ε) while the
+    others agree with each other (a pose jump, a SLAM that lost track). NaN for a scan with fewer than
+    ``min_planes`` planes."""
+    counts, scans = np.asarray(counts, np.float64), np.asarray(scans)
+    grouped = np.zeros(len(counts), bool)
+    for g in groups:
+        grouped[g.members] = True
+    total = np.bincount(scans, counts, n_scans)
+    inside = np.bincount(scans, counts * grouped, n_scans)
+    judged = (np.bincount(scans, minlength=n_scans) >= max(min_planes, 1)) & (total > 0)
+    return np.divide(inside, total, out=np.full(n_scans, np.nan), where=judged)
+
+
+def window_agreement(groups: list[CoPlaneGroup], scans, counts, n_scans: int) -> float:
+    """A window's agreement: the lowest :func:`scan_agreement` of its scans. NaN without a co-plane group
+    (no two scans share a plane: CPV is undefined and says so) or without a judged scan."""
+    shares = scan_agreement(groups, scans, counts, n_scans) if groups else np.full(1, np.nan)
+    return float(np.nanmin(shares)) if np.isfinite(shares).any() else float("nan")
+
+
 def cpv_of_groups(groups: list[CoPlaneGroup]) -> float:
     """Point-weighted mean of the groups' λ_min (m²); NaN when there is no group."""
     if not groups:
