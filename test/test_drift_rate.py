@@ -210,3 +210,20 @@ def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_pat
     assert all(r["level"] in ("WARN", "ERROR") for r in inside[1:])
     assert inside[0]["level"] in ("WARN", "ERROR") or f"watch: {meaning}" in inside[0]["message"]
     assert np.median([r["rpe_estimate"] / r["rpe"] for r in inside]) == pytest.approx(1.0, rel=0.15)
+
+
+def test_the_rate_gate_widens_with_distance_so_a_drift_past_cpvs_gate_is_read():
+    """Two scans 1 s apart drifting 0.4 m/s along x: the walls facing x move 0.4 m, past CPV's ε (0.3 m),
+    so with CPV's groups no plane shows the x drift (read 0). metrics.rate_gate_per_m × the distance the
+    window travelled (0.02 × 10 m: ε + 0.2 m) joins them and reads 0.4 m/s; CPV's own groups stay."""
+    from topometric_ros.pipeline import WindowPlanes, plane_metrics
+
+    times = np.array([0.0, 1.0])
+    wp = WindowPlanes(*window(v_m_s=(0.4, 0, 0), planes=ROOM[:6], times=times))
+    off = plane_metrics(wp, times, Config(), distance=10.0)
+    cfg = Config()
+    cfg.metrics.rate_gate_per_m = 0.02
+    on = plane_metrics(wp, times, cfg, distance=10.0)
+    assert off.trans_rate < 1e-6 and on.trans_rate == pytest.approx(0.4, rel=1e-6)
+    assert (on.n_groups, on.cpv) == (off.n_groups, off.cpv)
+    assert plane_metrics(wp, times, cfg, distance=0.0).trans_rate == off.trans_rate  # standing still: no widening

@@ -65,7 +65,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "health.rate_persist": (1, 1000),
     "health.noise_windows": (0, 100_000), "health.noise_quantile": (0.0, 1.0), "health.noise_margin": (0.0, 100.0),
     "health.noise_max_factor": (1.0, 1000.0),
-    "health.min_planes": (0, 1_000_000), "health.agreement_warn": (0.0, 1.0),
+    "health.min_planes": (0, 1_000_000), "health.agreement_warn": (0.0, 1.0), "metrics.rate_gate_per_m": (0.0, 1.0),
     "scan_rate_min_hz": (0.0, 1000.0), "scan_rate_max_hz": (0.0, 1000.0),
     "latency_warn_s": (0.0, 3600.0), "latency_error_s": (0.0, 3600.0),
     "diagnostic_updater.period": (0.05, 60.0),

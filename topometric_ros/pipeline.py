@@ -265,9 +265,11 @@ class PlaneScores:
     agreement: float = float("nan")
 
 
-def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None) -> PlaneScores:
+def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None,
+                  distance: float = 0.0) -> PlaneScores:
     """PNE, CPV and the drift rates of window-frame planes (``times``: (K,) s of the window's scans) with the
-    thresholds of config.metrics."""
+    thresholds of config.metrics. ``distance`` (m, the path the window travelled) widens the rate fit's own
+    offset gate by metrics.rate_gate_per_m per m, so that a drift larger than CPV's ε still forms groups."""
     m = config.metrics
     timer = _Timer(timings if timings is not None else {})
     with timer("pne"):
@@ -279,7 +281,10 @@ def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, fl
         cpv = cpv_mod.cpv_of_groups(groups)
         agreement = cpv_mod.window_agreement(groups, wp.scans, wp.counts, len(times))
     with timer("rates"):
-        rot, trans = drift_mod.drift_rates(groups, wp.scans, wp.normals, wp.means, wp.counts, times)
+        widen = m.rate_gate_per_m * distance if np.isfinite(distance) else 0.0
+        rate_groups = groups if widen <= 0 else cpv_mod.coplane_groups(
+            wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts, m.cpv_angle_deg, m.cpv_epsilon + widen)
+        rot, trans = drift_mod.drift_rates(rate_groups, wp.scans, wp.normals, wp.means, wp.counts, times)
     return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement)
 
 
@@ -296,8 +301,8 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     with timer("transform"):
         wp = window_planes(scans, poses)
     stamps = [s.stamp for s in scans]
-    ps = plane_metrics(wp, stamps, config, timings)
     speed, turn_rate = window_motion(poses, stamps)
+    ps = plane_metrics(wp, stamps, config, timings, distance=speed * (stamps[-1] - stamps[0]))
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
                           rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), speed=speed,
