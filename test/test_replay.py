@@ -124,8 +124,11 @@ def test_metrics_png_says_what_it_shows_and_keeps_its_legend_off_the_data(office
     title = fig.get_suptitle()
     assert "bag office1_rt" in title and "segmentation network" in title  # run() keeps the config's mode
     axes = fig.axes
-    assert len(axes) == 5 and all("(" in ax.get_ylabel() for ax in axes)  # a unit (or what it is) on each
-    assert "‖E−I‖_F" in axes[-1].get_ylabel() and "(s)" in axes[-1].get_xlabel()
+    assert len(axes) == 6 and all("(" in ax.get_ylabel() for ax in axes)  # a unit (or what it is) on each
+    assert "‖E−I‖_F" in axes[-2].get_ylabel() and "agreement" in axes[-1].get_ylabel()
+    assert "(s)" in axes[-1].get_xlabel()
+    # the pose-jump limit (health.agreement_warn) is drawn on the agreement row
+    assert any(np.allclose(line.get_ydata(), 0.4) for line in axes[-1].get_lines() if len(line.get_ydata()))
     (legend,) = fig.legends
     labels = [t.get_text() for t in legend.get_texts()]
     for wanted in ("WARN limit", "ERROR limit", "WARN window", "ERROR window", "learning baseline (2 windows)",

@@ -82,8 +82,8 @@ class Assessment:
 
 
 def assessment_fields(a: "Assessment | None") -> dict:
-    """A window record's health columns (windows.json): z_pne, z_cpv and each metric's and rate's warn_at /
-    error_at (metric units), NaN without an assessment."""
+    """A window record's health columns (windows.json): z_pne, z_cpv, each metric's and rate's warn_at /
+    error_at (metric units) and agreement_warn_at (a lower limit), NaN without an assessment."""
     nan = float("nan")
     out = {}
     for metric in (*METRICS, *RATES):
@@ -91,6 +91,7 @@ def assessment_fields(a: "Assessment | None") -> dict:
             out[f"z_{metric}"] = a.z.get(metric, nan) if a else nan
         out[f"{metric}_warn_at"] = a.warn_at.get(metric, nan) if a else nan
         out[f"{metric}_error_at"] = a.error_at.get(metric, nan) if a else nan
+    out["agreement_warn_at"] = a.warn_at.get("agreement", nan) if a else nan
     return out
 
 
@@ -181,6 +182,7 @@ class Health:
                              f"{sum(self._high)} of {c.warn_persist} windows needed")
         self.rates.learn(result)
         agreement = float(getattr(result, "agreement", float("nan")))
+        warn_at["agreement"] = c.agreement_warn if c.agreement_warn > 0 else float("nan")
         if c.agreement_warn > 0 and agreement < c.agreement_warn:  # NaN (no co-plane group) never alarms
             level = _worse(level, "WARN")
             alarms.append(f"pose jump: a scan lines up with the others for {agreement:.0%} of its plane inliers "

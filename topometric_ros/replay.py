@@ -396,12 +396,13 @@ BASELINE_COLOUR = "#7fa7d0"
 #: (record key, axis label with its unit) of each row of metrics.png
 PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate", "rotation drift (°/s)"),
              ("trans_rate", "translation drift (m/s)"),
-             ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)")]
+             ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)"),
+             ("agreement", "scan agreement\n(worst scan's share\nof planes in place)")]
 
 
 def plot_metrics(records: list[dict], path: Path, truth: dict | None = None, summary: dict | None = None) -> None:
-    """metrics.png: PNE, CPV, the drift rates and the RPE estimate (with the true RPE when the bag has ground
-    truth) per window over bag time; WARN/ERROR windows shaded, their limits dashed, simulated drift episodes
+    """metrics.png: PNE, CPV, the drift rates, the RPE estimate (with the true RPE when the bag has ground
+    truth) and the scan agreement per window over bag time; WARN/ERROR windows shaded, their limits dashed, simulated drift episodes
     (truth.json) hatched, the baseline-learning windows (health.baseline_windows, from the summary's config)
     shaded and labelled; bag, segmentation mode and sensor in the title; one legend, outside the plots."""
     from .reports import pyplot
