@@ -249,7 +249,8 @@ def test_scan_agreement_is_the_share_a_jumped_scan_keeps_in_place(office_scans):
     assert yawed.agreement == pytest.approx(_shares(_jumped(office_scans, 2, [0, 0, 20]))[2], abs=1e-12)
     lost = score_window(_jumped(office_scans, 2, [30, 0, 30]), Config())
     assert lost.agreement < Config().health.agreement_warn
-    assert Health().assess(lost).level == "WARN" and "pose jump" in lost.message
+    assert Health().assess(lost).level == "WARN" and lost.agreement_scan == 2
+    assert lost.message.startswith(f"pose jump: scan 3 of 6 (stamp {office_scans[2].stamp:.2f})")
     # the rate fit drops such a scan: the rates barely move
     assert lost.rot_rate < right.rot_rate + 0.5
 
@@ -265,5 +266,5 @@ def test_scan_agreement_counts_inliers_in_groups_per_scan_and_skips_scans_with_f
     assert np.isnan(shares[3])  # no planes
     # by default a scan needs 3 planes to be judged (a truncated cloud is not a pose jump): none here
     assert np.isnan(cpv_mod.scan_agreement(groups, scans, arrays[-1], 4)).all()
-    assert np.isnan(cpv_mod.window_agreement(groups, scans, arrays[-1], 4))
-    assert np.isnan(cpv_mod.window_agreement([], scans, arrays[-1], 4))
+    assert cpv_mod.window_agreement(groups, scans, arrays[-1], 4)[1] == -1
+    assert np.isnan(cpv_mod.window_agreement([], scans, arrays[-1], 4)[0])

@@ -185,8 +185,8 @@ class Health:
         warn_at["agreement"] = c.agreement_warn if c.agreement_warn > 0 else float("nan")
         if c.agreement_warn > 0 and agreement < c.agreement_warn:  # NaN (no co-plane group) never alarms
             level = _worse(level, "WARN")
-            alarms.append(f"pose jump: a scan lines up with the others for {agreement:.0%} of its plane inliers "
-                          f"(limit {c.agreement_warn:.0%})")
+            alarms.append(f"pose jump: {_which_scan(result)} lines up with the others for {agreement:.0%} of its "
+                          f"plane inliers (limit {c.agreement_warn:.0%})")
         if result.n_planes < c.min_planes:
             level = _worse(level, "WARN")
             alarms.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
@@ -317,6 +317,12 @@ class RateLimits:
             for r, base in (("rot_rate", c.rot_floor), ("trans_rate", c.trans_floor)):
                 learned = c.noise_margin * float(np.quantile(self._excess[r], c.noise_quantile))
                 self.floor[r] = float(np.clip(learned, base, base * c.noise_max_factor))
+
+
+def _which_scan(result: Any) -> str:
+    """'scan k of n (stamp s)' for the window's least agreeing scan, 'a scan' when it is not known."""
+    k, stamps = int(getattr(result, "agreement_scan", -1)), list(getattr(result, "stamps", []) or [])
+    return f"scan {k + 1} of {len(stamps)} (stamp {stamps[k]:.2f})" if 0 <= k < len(stamps) else "a scan"
 
 
 def _worse(a: str, b: str) -> str:

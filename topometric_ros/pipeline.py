@@ -66,7 +66,8 @@ class WindowResult:
     turn_rate (deg/s): the sensor's motion over the window by the SLAM poses (what relative limits scale with).
     n_planes: planes in the window; n_groups: CPV co-plane groups; n_clusters: PNE normal clusters.
     agreement: the lowest share, over the window's scans, of a scan's plane inliers that another scan
-    sees in the same place (cpv.window_agreement; 0-1, low for a scan off by a pose jump).
+    sees in the same place (cpv.window_agreement; 0-1, low for a scan off by a pose jump); agreement_scan:
+    that scan's position in the window (−1 none).
     pne / cpv / rates / agreement are NaN when the window has no normal cluster / co-plane group.
     timings: ms per metric.
 
@@ -84,6 +85,7 @@ class WindowResult:
     speed: float = float("nan")
     turn_rate: float = float("nan")
     agreement: float = float("nan")
+    agreement_scan: int = -1
     mme: float | None = None
     mpv: float | None = None
     mom: float | None = None
@@ -254,7 +256,7 @@ def window_planes(scans: Sequence[ProcessedScan], poses: np.ndarray) -> WindowPl
 @dataclass
 class PlaneScores:
     """What the window's planes give: pne (nats), cpv (m²), drift rates (deg/s, m/s), counts, and the lowest
-    scan agreement (0-1, see WindowResult)."""
+    scan agreement (0-1, see WindowResult) with that scan's position in the window (−1 none)."""
 
     pne: float
     cpv: float
@@ -263,6 +265,7 @@ class PlaneScores:
     n_clusters: int
     n_groups: int
     agreement: float = float("nan")
+    agreement_scan: int = -1
 
 
 def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None,
@@ -279,13 +282,13 @@ def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, fl
         groups = cpv_mod.coplane_groups(wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts,
                                         m.cpv_angle_deg, m.cpv_epsilon)
         cpv = cpv_mod.cpv_of_groups(groups)
-        agreement = cpv_mod.window_agreement(groups, wp.scans, wp.counts, len(times))
+        agreement, worst = cpv_mod.window_agreement(groups, wp.scans, wp.counts, len(times))
     with timer("rates"):
         widen = m.rate_gate_per_m * distance if np.isfinite(distance) else 0.0
         rate_groups = groups if widen <= 0 else cpv_mod.coplane_groups(
             wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts, m.cpv_angle_deg, m.cpv_epsilon + widen)
         rot, trans = drift_mod.drift_rates(rate_groups, wp.scans, wp.normals, wp.means, wp.counts, times)
-    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement)
+    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement, worst)
 
 
 def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult:
@@ -306,7 +309,8 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
                           rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), speed=speed,
-                          turn_rate=turn_rate, agreement=ps.agreement, timings=timings)
+                          turn_rate=turn_rate, agreement=ps.agreement, agreement_scan=ps.agreement_scan,
+                          timings=timings)
     if config.metrics.baselines:
         _baselines(result, scans, poses, config)
     timings["total"] = 1000.0 * (time.perf_counter() - start)

@@ -164,11 +164,15 @@ def scan_agreement(groups: list[CoPlaneGroup], scans, counts, n_scans: int,
     return np.divide(inside, total, out=np.full(n_scans, np.nan), where=judged)
 
 
-def window_agreement(groups: list[CoPlaneGroup], scans, counts, n_scans: int) -> float:
-    """A window's agreement: the lowest :func:`scan_agreement` of its scans. NaN without a co-plane group
-    (no two scans share a plane: CPV is undefined and says so) or without a judged scan."""
+def window_agreement(groups: list[CoPlaneGroup], scans, counts, n_scans: int) -> tuple[float, int]:
+    """A window's agreement and which scan gives it: the lowest :func:`scan_agreement` of its scans and that
+    scan's position. (NaN, −1) without a co-plane group (no two scans share a plane: CPV is undefined and
+    says so) or without a judged scan."""
     shares = scan_agreement(groups, scans, counts, n_scans) if groups else np.full(1, np.nan)
-    return float(np.nanmin(shares)) if np.isfinite(shares).any() else float("nan")
+    if not np.isfinite(shares).any():
+        return float("nan"), -1
+    worst = int(np.nanargmin(shares))
+    return float(shares[worst]), worst
 
 
 def cpv_of_groups(groups: list[CoPlaneGroup]) -> float:
