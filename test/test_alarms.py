@@ -57,13 +57,16 @@ def scan(frame, config, segmenter=None, index=-1):
 
 
 def noisy_window(scans, config):
-    """A drift-free site whose metrics wander (seeded by the window's stamp), then a rise (drift)."""
+    """A drift-free site whose metrics wander (seeded by the window's stamp), then a rise (drift), then a pose
+    jump of the window's 4th scan."""
     t = scans[-1].stamp
     rng = np.random.default_rng(int(t * 10))
     rise = 2.0 if 40 <= t < 46 else 0.0
+    jump = 60 <= t < 61
     return WindowResult([s.stamp for s in scans], pne=-3 + 0.3 * rng.standard_normal() + rise,
                         cpv=0.004 * np.exp(0.4 * rng.standard_normal() + 2 * rise), n_planes=30, n_groups=8,
-                        rot_rate=abs(0.3 * rng.standard_normal()) + rise, trans_rate=abs(0.02 * rng.standard_normal()))
+                        rot_rate=abs(0.3 * rng.standard_normal()) + rise, trans_rate=abs(0.02 * rng.standard_normal()),
+                        agreement=0.2 if jump else 0.95, agreement_scan=3 if jump else 0)
 
 
 def monitor_records(health):
@@ -77,8 +80,9 @@ def monitor_records(health):
     m.add_pose(100.0, np.eye(4))
     m.flush()
     return [{"start": r.stamps[0], "end": r.stamps[-1], "pne": r.pne, "cpv": r.cpv, "n_planes": r.n_planes,
-             "rot_rate": r.rot_rate, "trans_rate": r.trans_rate, "level": r.level, "message": r.message}
-            for r in m.results]
+             "rot_rate": r.rot_rate, "trans_rate": r.trans_rate, "level": r.level, "message": r.message,
+             "n_scans": r.n_scans, "agreement": r.agreement, "agreement_scan": r.agreement_scan,
+             "agreement_stamp": r.agreement_stamp} for r in m.results]
 
 
 @pytest.mark.parametrize("other", [HealthConfig(warn_sigma=3.0), HealthConfig(warn_sigma=9.0, error_sigma=12.0),
@@ -89,6 +93,7 @@ def test_reassessing_recorded_windows_gives_what_the_monitor_gives(other):
     again = reassess(base, other)
     direct = monitor_records(other)
     assert [(r["level"], r["message"]) for r in again] == [(r["level"], r["message"]) for r in direct]
+    assert any(r["message"].startswith("pose jump: scan 4 of 5 (stamp 60.") for r in again)
 
 
 def test_reassessing_replaces_the_limits_the_score_judges_real_drift_by():

@@ -227,3 +227,27 @@ def test_the_rate_gate_widens_with_distance_so_a_drift_past_cpvs_gate_is_read():
     assert off.trans_rate < 1e-6 and on.trans_rate == pytest.approx(0.4, rel=1e-6)
     assert (on.n_groups, on.cpv) == (off.n_groups, off.cpv)
     assert plane_metrics(wp, times, cfg, distance=0.0).trans_rate == off.trans_rate  # standing still: no widening
+
+
+def test_score_window_widens_the_rate_gate_by_the_distance_its_poses_travelled():
+    """The same drift through score_window: two scans 1 s apart, the sensor driving 10 m along y, the SLAM
+    pose drifting 0.4 m along x. The window's own poses give the distance (10 m), so rate_gate_per_m 0.02
+    reads the 0.4 m/s that CPV's gate alone cannot."""
+    from topometric_ros.pipeline import ProcessedScan, score_window
+    from topometric_ros.planes import Plane
+
+    scans = []
+    for i, t in enumerate([0.0, 1.0]):
+        truth = geometry.make_pose(np.eye(3), [0.0, 10.0 * t, 0.0])
+        to_sensor = geometry.inverse(truth)
+        planes = []
+        for k, (n, d, c) in enumerate(ROOM[:6]):
+            n = np.asarray(n, float)
+            normal, mean = to_sensor[:3, :3] @ n, to_sensor[:3, :3] @ (-d * n) + to_sensor[:3, 3]
+            scatter = (np.eye(3) - np.outer(normal, normal) * (1 - 1e-6)) * c
+            planes.append(Plane(k % 3, normal, -float(normal @ mean), c, mean, scatter, np.zeros((0, 3), np.float32)))
+        scans.append(ProcessedScan(t, geometry.make_pose(np.eye(3), [0.4 * t, 0.0, 0.0]) @ truth, planes))
+    cfg = Config()
+    assert score_window(scans, cfg).trans_rate < 1e-6
+    cfg.metrics.rate_gate_per_m = 0.02
+    assert score_window(scans, cfg).trans_rate == pytest.approx(0.4, rel=1e-6)

@@ -321,8 +321,9 @@ class RateLimits:
 
 def _which_scan(result: Any) -> str:
     """'scan k of n (stamp s)' for the window's least agreeing scan, 'a scan' when it is not known."""
-    k, stamps = int(getattr(result, "agreement_scan", -1)), list(getattr(result, "stamps", []) or [])
-    return f"scan {k + 1} of {len(stamps)} (stamp {stamps[k]:.2f})" if 0 <= k < len(stamps) else "a scan"
+    k, n = int(getattr(result, "agreement_scan", -1)), int(getattr(result, "n_scans", 0))
+    stamp = float(getattr(result, "agreement_stamp", float("nan")))
+    return f"scan {k + 1} of {n} (stamp {stamp:.2f})" if 0 <= k < n and np.isfinite(stamp) else "a scan"
 
 
 def _worse(a: str, b: str) -> str:

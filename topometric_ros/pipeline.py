@@ -93,6 +93,16 @@ class WindowResult:
     level: str = "OK"
     message: str = ""
 
+    @property
+    def n_scans(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def agreement_stamp(self) -> float:
+        """Stamp (s) of the scan that gives the window's agreement; NaN when none does."""
+        k = self.agreement_scan
+        return float(self.stamps[k]) if 0 <= k < len(self.stamps) else float("nan")
+
 
 class _Timer:
     """Collects wall times in ms into a dict: ``with timer("step"): ...``."""

@@ -108,7 +108,8 @@ class _Recorder:
             if getattr(result, name) is not None:
                 rec[name] = getattr(result, name)
         rec.update(n_planes=result.n_planes, n_groups=result.n_groups, level=result.level, message=result.message)
-        rec.update(speed=result.speed, turn_rate=result.turn_rate, agreement=result.agreement)
+        rec.update(speed=result.speed, turn_rate=result.turn_rate, agreement=result.agreement,
+                   agreement_scan=result.agreement_scan, agreement_stamp=result.agreement_stamp)
         rec.update(assessment_fields(a))
         rec.update({f"ms_{k}": round(float(v), 3) for k, v in result.timings.items()})
         counters = m.counters

@@ -153,7 +153,8 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
     h, out = Health(health), []
     for r in records:
         res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan),
-                      r.get("speed", np.nan), r.get("turn_rate", np.nan), r.get("agreement", np.nan))
+                      r.get("speed", np.nan), r.get("turn_rate", np.nan), r.get("agreement", np.nan),
+                      (r.get("agreement_scan", -1), r.get("n_scans", 0), r.get("agreement_stamp", np.nan)))
         a = h.assess(res)
         out.append({**r, "level": res.level, "message": res.message, **assessment_fields(a)})
     return out
@@ -163,10 +164,13 @@ class _Window:
     """The fields of a WindowResult health.py reads."""
 
     def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float,
-                 speed: float = np.nan, turn_rate: float = np.nan, agreement: float = np.nan):
+                 speed: float = np.nan, turn_rate: float = np.nan, agreement: float = np.nan,
+                 worst: tuple = (-1, 0, np.nan)):
         self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
         self.rot_rate, self.trans_rate = float(rot_rate), float(trans_rate)
         self.speed, self.turn_rate, self.agreement = float(speed), float(turn_rate), float(agreement)
+        # the least agreeing scan: position, the window's scan count, its stamp (s)
+        self.agreement_scan, self.n_scans, self.agreement_stamp = int(worst[0]), int(worst[1]), float(worst[2])
         self.level, self.message = "OK", ""
 
 
