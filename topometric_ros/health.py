@@ -183,7 +183,7 @@ class Health:
         self.rates.learn(result)
         agreement = float(getattr(result, "agreement", float("nan")))
         warn_at["agreement"] = c.agreement_warn if c.agreement_warn > 0 else float("nan")
-        if c.agreement_warn > 0 and agreement < c.agreement_warn:  # NaN (no co-plane group) never alarms
+        if agreement < warn_at["agreement"]:  # NaN (no co-plane group, the rule off) never alarms
             level = _worse(level, "WARN")
             alarms.append(f"pose jump: {_which_scan(result)} lines up with the others for {agreement:.0%} of its "
                           f"plane inliers (limit {c.agreement_warn:.0%})")

@@ -403,8 +403,8 @@ PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate"
 
 def plot_metrics(records: list[dict], path: Path, truth: dict | None = None, summary: dict | None = None) -> None:
     """metrics.png: PNE, CPV, the drift rates, the RPE estimate (with the true RPE when the bag has ground
-    truth) and the scan agreement per window over bag time; WARN/ERROR windows shaded, their limits dashed, simulated drift episodes
-    (truth.json) hatched, the baseline-learning windows (health.baseline_windows, from the summary's config)
+    truth) and the scan agreement per window over bag time; WARN/ERROR windows shaded, their limits dashed,
+    simulated drift episodes (truth.json) hatched, the baseline-learning windows (health.baseline_windows, from the summary's config)
     shaded and labelled; bag, segmentation mode and sensor in the title; one legend, outside the plots."""
     from .reports import pyplot
 
