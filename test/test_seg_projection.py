@@ -8,6 +8,7 @@ from topometric_ros import classes as C
 from topometric_ros.segmentation.metrics import confusion, iou_per_class, miou
 from topometric_ros.grid import scan_grid
 from topometric_ros.segmentation.projection import CHANNELS, ProjectionError, image_shape, project, project_labels
+from topometric_ros.sensors import sensor
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -51,6 +52,29 @@ def test_many_beams_are_split_into_interleaved_images_of_at_most_32_rows(beams, 
     k = images
     assert proj.flat[top] // (rows * 720) == (beams - 1) % k  # the image of the top beam
     np.testing.assert_allclose(proj.unproject(image[:, 3]), pts[:, 2], atol=1e-5)
+
+
+@pytest.mark.parametrize("named", [True, False])
+def test_a_non_repetitive_scan_gets_an_image_of_about_one_pixel_per_point(named):
+    """The Mid-360's grid keeps square 1.8° cells (several points each, for the plane tiles); its network image
+    has 640 columns (20,000 points over 32 rows, rounded up to 64), so most points get a pixel of their own, and
+    every point still reads its own pixel back."""
+    model = sensor("Mid-360")
+    frames, _ = simulated_frames("office1", 1, seed=3, sensor="Mid-360")
+    pts = frames[0].points
+    grid = scan_grid(pts, model=model if named else None)
+    assert grid.source.startswith("elevation bins") and (grid.height, grid.width) == (32, 200)
+    assert grid.image_width == (640 if named else -(-len(pts) // (32 * 64)) * 64)
+    image, proj = project(pts, grid)
+    assert image.shape == (1, len(CHANNELS), 32, grid.image_width)
+    coarse = len(np.unique(grid.row.astype(np.int64) * grid.width + grid.col))
+    fine = int(image[:, CHANNELS.index("valid")].sum())
+    assert coarse < 0.4 * len(pts) and fine > 0.6 * len(pts)  # distinct pixels: the grid's cells vs the image
+    np.testing.assert_allclose(proj.unproject(image[:, 0]) > 0, True)  # every point lands on a filled pixel
+    az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    col = np.asarray(proj.flat) % grid.image_width
+    off = (az - col * 360.0 / grid.image_width + 180.0) % 360.0 - 180.0
+    assert np.abs(off).max() <= 0.5 * 360.0 / grid.image_width + 1e-3  # its own azimuth column
 
 
 def test_azimuth_wraps_around():

@@ -1,6 +1,7 @@
 """Points <-> range images of a scan's grid (grid.py), the network's input, for any LiDAR.
 
-The grid's rows (0 = lowest beam) and azimuth columns are the image's. A grid of more than MAX_ROWS rows is
+The grid's rows (0 = lowest beam) and azimuth columns are the image's (a non-repetitive pattern's image has
+finer columns than its grid: grid.image_columns). A grid of more than MAX_ROWS rows is
 split into ``k`` = ceil(rows / MAX_ROWS) interleaved images (image s holds rows s, s + k, s + 2k, ...), so every
 sensor shows the network images of at most 32 beams spanning its whole field of view: 16 rows for a VLP-16,
 32 for 32 beams, two of 32 for 64 beams, four of 32 for 128. Rows are padded to a multiple of 4 (the
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..grid import ScanGrid, as_grid
+from ..grid import ScanGrid, as_grid, azimuth_columns
 
 CHANNELS = ("range", "x", "y", "z", "intensity", "valid")
 MAX_ROWS = 32  # beams per network image
@@ -29,7 +30,7 @@ def image_shape(grid: ScanGrid) -> tuple[int, int, int]:
     """(images, rows, columns) of the interleaved images of a grid."""
     k = -(-grid.height // MAX_ROWS)
     rows = -(-(-(-grid.height // k)) // 4) * 4
-    return k, rows, grid.width
+    return k, rows, grid.image_width or grid.width
 
 
 @dataclass
@@ -62,7 +63,8 @@ def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) 
     grid = as_grid(points, grid)
     k, rows, width = image_shape(grid)
     row = grid.row.astype(np.int64)
-    sub, pixel = row % k, (row // k) * width + grid.col
+    col = grid.col if width == grid.width else azimuth_columns(points, width)
+    sub, pixel = row % k, (row // k) * width + col
     proj = Projection(sub * (rows * width) + pixel, k, rows, width)
     channel = rows * width
     image = np.zeros(k * len(CHANNELS) * channel, np.float32)
