@@ -1,9 +1,10 @@
 """``topometric inspect``: the per-scan stages on a bag's clouds, drawn for a person, no odometry needed.
 
 For every ``every``-th cloud (at most ``limit``): how the cloud was read (driver layout, dropped points, per-
-point time), its grid (rows from where, size), the segmentation and the planes, as one PNG per scan (the
-grid coloured by class, a top view by class and a top view by plane) and one CSV row per scan. It answers
-"does my sensor work with the monitor?" before any odometry is involved.
+point time), its grid (rows from where, size), the network's image (images x rows x columns), the
+segmentation and the planes, as one PNG per scan (the grid coloured by class, a top view by class and a top
+view by plane) and one CSV row per scan. It answers "does my sensor work with the monitor?" before any
+odometry is involved.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from .config import Config
 from .pipeline import segment_scan, sensor_model
 from .planes import detect_planes
 from .reports import pyplot, write_csv
+from .segmentation.projection import image_shape
 from .window import Frame
 
 #: Colours of the classes (classes.NAMES order) in every plot.
@@ -74,7 +76,9 @@ def _inspect_one(k: int, msg, config: Config, model, segmenter, out: Path | None
     t0 = time.perf_counter()
     seg = segment_scan(frame, config, segmenter, k)
     planes, assign = detect_planes(seg.frame.points, seg.labels, seg.grid, config.planes, k, return_inliers=True)
-    row.update(grid=f"{seg.grid.height}x{seg.grid.width}", rows_from=seg.grid.source, planes=len(planes),
+    images, rows, columns = image_shape(seg.grid)  # what the network sees (a non-repetitive grid's is finer)
+    row.update(grid=f"{seg.grid.height}x{seg.grid.width}", rows_from=seg.grid.source,
+               network_image=f"{images}x{rows}x{columns}", planes=len(planes),
                ms=round(1000 * (time.perf_counter() - t0), 1),
                **{f"share_{C.NAMES[c]}": round(float(np.mean(seg.labels == c)), 3) for c in range(C.NUM_CLASSES)})
     if out is not None:
