@@ -57,24 +57,33 @@ def test_many_beams_are_split_into_interleaved_images_of_at_most_32_rows(beams, 
 @pytest.mark.parametrize("named", [True, False])
 def test_a_non_repetitive_scan_gets_an_image_of_about_one_pixel_per_point(named):
     """The Mid-360's grid keeps square 1.8° cells (several points each, for the plane tiles); its network image
-    has 640 columns (20,000 points over 32 rows, rounded up to 64), so most points get a pixel of their own, and
-    every point still reads its own pixel back."""
+    has about one pixel per point: 640 columns for its ~19,700 points over 32 rows (rounded up to 64), 192 for
+    a quarter of them (a voxel filter). Every point reads back its own pixel: its row, and the column of the
+    azimuth it was fired at."""
     model = sensor("Mid-360")
     frames, _ = simulated_frames("office1", 1, seed=3, sensor="Mid-360")
     pts = frames[0].points
     grid = scan_grid(pts, model=model if named else None)
     assert grid.source.startswith("elevation bins") and (grid.height, grid.width) == (32, 200)
-    assert grid.image_width == (640 if named else -(-len(pts) // (32 * 64)) * 64)
+    assert 19_200 < len(pts) <= 20_480 and image_shape(grid) == (1, 32, 640)
     image, proj = project(pts, grid)
-    assert image.shape == (1, len(CHANNELS), 32, grid.image_width)
+    assert image.shape == (1, len(CHANNELS), 32, 640)
     coarse = len(np.unique(grid.row.astype(np.int64) * grid.width + grid.col))
     fine = int(image[:, CHANNELS.index("valid")].sum())
-    assert coarse < 0.4 * len(pts) and fine > 0.6 * len(pts)  # distinct pixels: the grid's cells vs the image
-    np.testing.assert_allclose(proj.unproject(image[:, 0]) > 0, True)  # every point lands on a filled pixel
+    assert coarse < 0.4 * len(pts) and fine > 0.6 * len(pts)  # filled pixels: the grid's cells vs the image
+    row, col = np.divmod(np.asarray(proj.flat), 640)
+    np.testing.assert_array_equal(row, grid.row)
     az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
-    col = np.asarray(proj.flat) % grid.image_width
-    off = (az - col * 360.0 / grid.image_width + 180.0) % 360.0 - 180.0
-    assert np.abs(off).max() <= 0.5 * 360.0 / grid.image_width + 1e-3  # its own azimuth column
+    off = (az - col * 360.0 / 640 + 180.0) % 360.0 - 180.0
+    assert np.abs(off).max() <= 0.5 * 360.0 / 640 + 1e-3  # the column of its own azimuth
+    quarter = grid.subset(np.arange(0, len(pts), 4))
+    assert image_shape(quarter) == (1, 32, -(-len(quarter.row) // (32 * 64)) * 64) == (1, 32, 192)
+    assert project(pts[::4], quarter)[0].shape == (1, len(CHANNELS), 32, 192)
+
+
+def test_a_spinning_scan_keeps_no_azimuths_and_its_image_is_its_grid(scan):
+    grid = scan_grid(scan.points, scan.ring)
+    assert grid.azimuth is None and image_shape(grid) == (1, 32, grid.width)
 
 
 def test_azimuth_wraps_around():

@@ -12,7 +12,8 @@ Rows, 0 = the lowest beam, from the first of:
 4. a non-repetitive pattern (a sensor named so, or a scan whose elevations form no beams): uniform
    elevation bins, no beams needed, and as many azimuth cells as make them square (a sparse pattern then
    puts a few points in each cell, which the tiles of the plane detector need). The network's image of such a
-   grid (``image_width``) has finer columns: about one pixel per point, as a spinning sensor's image has.
+   grid has finer columns (image_columns: about one pixel per point, as a spinning sensor's image has), placed
+   by each point's azimuth as fired (``azimuth``, kept for these grids only).
 Columns: ``width`` azimuth cells of 2π / width, column 0 centred on the sensor's +x axis, counter-clockwise; width
 is the sensor's firings per revolution (named sensor, or the organised cloud's width, or estimated from
 the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit.
@@ -38,8 +39,9 @@ SAMPLE = 5  # every 5th point is enough for a row's median elevation
 @dataclass
 class ScanGrid:
     """Cells of a scan's points: row (N,) int32 (0 = lowest), col (N,) int32, the grid size, each row's
-    median elevation (deg, NaN when empty), how the rows were found (``source``) and the columns of the
-    network's image of the grid (``image_width``; 0 = ``width``: see image_columns)."""
+    median elevation (deg, NaN when empty), how the rows were found (``source``) and, for a non-repetitive
+    grid only, each point's azimuth as fired (``azimuth`` (N,) rad; the network image's columns, see
+    image_columns), else None."""
 
     row: np.ndarray
     col: np.ndarray
@@ -47,12 +49,12 @@ class ScanGrid:
     width: int
     elevation_deg: np.ndarray
     source: str
-    image_width: int = 0
+    azimuth: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> "ScanGrid":
         """The grid of a subset of the points (index or mask array)."""
         return ScanGrid(self.row[keep], self.col[keep], self.height, self.width, self.elevation_deg, self.source,
-                        self.image_width)
+                        None if self.azimuth is None else self.azimuth[keep])
 
 
 def elevation_deg(points: np.ndarray) -> np.ndarray:
@@ -64,8 +66,12 @@ def elevation_deg(points: np.ndarray) -> np.ndarray:
 def azimuth_columns(points: np.ndarray, width: int) -> np.ndarray:
     """(N,) azimuth cell of each point: round(atan2(y, x) / 2π · width) mod width (cell c centred on azimuth
     c · 2π / width; column 0 at +x, counter-clockwise)."""
-    az = np.arctan2(points[:, 1], points[:, 0])
-    return (np.rint(az * np.float32(width / (2 * np.pi))).astype(np.int64) % width).astype(np.int32)
+    return azimuth_cells(np.arctan2(points[:, 1], points[:, 0]), width)
+
+
+def azimuth_cells(azimuth: np.ndarray, width: int) -> np.ndarray:
+    """(N,) cell of each azimuth (rad) on ``width`` cells of 2π / width, as azimuth_columns."""
+    return (np.rint(azimuth * np.float32(width / (2 * np.pi))).astype(np.int64) % width).astype(np.int32)
 
 
 def aligned(width: int) -> int:
@@ -89,7 +95,7 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
     if len(pts) == 0:
         return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
     non_repetitive = model is not None and model.pattern == "non_repetitive"
-    image = 0  # the network's image has the grid's columns, but for a non-repetitive pattern
+    az, keep_azimuth = np.arctan2(pts[:, 1], pts[:, 0]), False
     if beam is not None and not non_repetitive:
         row, height, source = _rows_from_beams(np.asarray(beam).astype(np.int64), el, model)
     elif model is not None and not non_repetitive:
@@ -101,13 +107,13 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
             row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
             columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
-            image = image_columns(model.points_per_scan if non_repetitive else len(pts), rows)
+            keep_azimuth = True  # the network image's finer columns (image_columns)
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
     width = aligned(model.columns if model is not None
                     else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
-    return ScanGrid(row.astype(np.int32), azimuth_columns(pts, width), int(height), width,
-                    _row_elevations(row, el, height), source, image)
+    return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
+                    _row_elevations(row, el, height), source, az if keep_azimuth else None)
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
@@ -115,12 +121,14 @@ def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
     return int(round(360.0 / max((fov_deg[1] - fov_deg[0]) / rows, 1e-3)))
 
 
-def image_columns(points_per_scan: int, rows: int) -> int:
-    """Columns of the network's image of a non-repetitive grid: about one pixel per point (``points_per_scan``
-    over ``rows``), rounded up to IMAGE_COLUMN_STEP. The grid's own square cells hold several points each (the
-    plane detector's tiles need them), and the network, which learned on images of about one point per pixel,
-    reads such coarse images poorly (Mid-360, unseen floor plan: mIoU 42 at 200 columns, 60 at 640)."""
-    return min(max(1, -(-int(points_per_scan) // max(rows * IMAGE_COLUMN_STEP, 1))) * IMAGE_COLUMN_STEP, MAX_COLUMNS)
+def image_columns(points: int, rows: int) -> int:
+    """Columns of the network's image of a non-repetitive grid of ``points`` points (those projected: after a
+    voxel filter, fewer) on ``rows`` rows: about one pixel per point, rounded up to IMAGE_COLUMN_STEP. The
+    grid's own square cells hold several points each (the plane detector's tiles need them); the network,
+    which learned on images of about one point per pixel, reads coarser or sparser images poorly (Mid-360,
+    validation floor plan: mIoU 41 at 200 columns, 46 at 512, 55 at 640, 45 at 1024). A sensor's scans thus
+    take a few widths (each new one costs an ONNX export, ~0.3 s, once)."""
+    return min(max(1, -(-int(points) // max(rows * IMAGE_COLUMN_STEP, 1))) * IMAGE_COLUMN_STEP, MAX_COLUMNS)
 
 
 def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarray, int, str]:

@@ -66,7 +66,7 @@ def scan_images(scan: LabelledScan) -> tuple[np.ndarray, np.ndarray]:
 def cache_key(bags: Sequence[str | Path], every: int) -> str:
     """A short hash naming a cache: its format (the grid-based images), the bag paths, their truth.json and
     the subsampling."""
-    h = hashlib.sha256(f"grid images v2|{every}".encode())
+    h = hashlib.sha256(f"grid images v3|{every}".encode())  # v3: non-repetitive images of finer columns
     for b in sorted(str(Path(p).resolve()) for p in bags):
         h.update(b.encode())
         truth = Path(b) / "truth.json"

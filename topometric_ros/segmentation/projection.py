@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..grid import ScanGrid, as_grid, azimuth_columns
+from ..grid import ScanGrid, as_grid, azimuth_cells, image_columns
 
 CHANNELS = ("range", "x", "y", "z", "intensity", "valid")
 MAX_ROWS = 32  # beams per network image
@@ -30,7 +30,7 @@ def image_shape(grid: ScanGrid) -> tuple[int, int, int]:
     """(images, rows, columns) of the interleaved images of a grid."""
     k = -(-grid.height // MAX_ROWS)
     rows = -(-(-(-grid.height // k)) // 4) * 4
-    return k, rows, grid.image_width or grid.width
+    return k, rows, grid.width if grid.azimuth is None else image_columns(len(grid.row), grid.height)
 
 
 @dataclass
@@ -63,7 +63,7 @@ def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) 
     grid = as_grid(points, grid)
     k, rows, width = image_shape(grid)
     row = grid.row.astype(np.int64)
-    col = grid.col if width == grid.width else azimuth_columns(points, width)
+    col = grid.col if grid.azimuth is None else azimuth_cells(grid.azimuth, width)  # finer: where it fired
     sub, pixel = row % k, (row // k) * width + col
     proj = Projection(sub * (rows * width) + pixel, k, rows, width)
     channel = rows * width
