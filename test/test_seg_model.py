@@ -94,6 +94,32 @@ def test_onnxruntime_backend_agrees_with_eager_pytorch(tmp_path, frames):
     np.testing.assert_array_equal(batch[1][0], fast.predict(frames[1].points, frames[1].ring, frames[1].intensity)[0])
 
 
+def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames):
+    """segmentation.passes 2 averages the network over the image and its mirror, so a scan and its mirror
+    (y -> -y) get the same label at every point, exactly (one pass: the net alone is not symmetric); 3 passes
+    (a shifted view too) run in ONNX Runtime and agree with eager PyTorch."""
+    pytest.importorskip("onnxruntime")
+    _, path = _random_weights(tmp_path)
+    f = frames[0]
+    mirrored = f.points * np.array([1.0, -1.0, 1.0], np.float32)
+    for passes in (1, 2):
+        seg = Segmenter.from_config(SegmentationConfig(weights=str(path), passes=passes))
+        assert seg.backend == "onnxruntime"
+        (a, ca), (b, cb) = seg.predict(f.points, f.ring, f.intensity), seg.predict(mirrored, f.ring, f.intensity)
+        if passes == 1:
+            assert (a != b).sum() > 100
+        else:
+            np.testing.assert_array_equal(a, b)
+            np.testing.assert_allclose(ca, cb, atol=1e-6)
+    fast = Segmenter.from_config(SegmentationConfig(weights=str(path), passes=3))
+    eager = Segmenter.from_config(SegmentationConfig(weights=str(path), passes=3, backend="eager"))
+    (la, ca), (lb, cb) = fast.predict(f.points, f.ring, f.intensity), eager.predict(f.points, f.ring, f.intensity)
+    assert fast.backend == "onnxruntime" and (la == lb).mean() >= 0.999
+    np.testing.assert_allclose(ca, cb, atol=1e-4)
+    with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
+        Segmenter.from_config(SegmentationConfig(weights=str(path), passes=4))
+
+
 def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames, monkeypatch, caplog):
     _, path = _random_weights(tmp_path)
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # the package is absent: import raises ImportError

@@ -37,21 +37,54 @@ log = logging.getLogger(__name__)
 Scan = tuple  # (points (N, 3) float32, grid.ScanGrid | beam ids (N,) | None, intensity (N,) | None)
 
 
+#: Most network passes per scan (config segmentation.passes): the image, its mirror, the image shifted.
+MAX_PASSES = 3
+Y_CHANNEL = 2  # index of y among projection.CHANNELS: negated in the mirror image
+
+
 class Labeller(nn.Module):
     """The network plus its read-out: (B, 6, H, W) range images -> (labels (B, H, W) uint8, confidence
-    (B, H, W) float32 softmax probability of the label). One module, so every backend computes the same."""
+    (B, H, W) float32 softmax probability of the label). One module, so every backend computes the same.
 
-    def __init__(self, net: RangeNet):
+    ``passes`` > 1 averages the softmax of several views of each image, each mapped back to the image's
+    pixels: 2 adds the mirror image (azimuth a -> -a, y -> -y), 3 also the image turned by half a fold (the
+    network folds ``fold`` columns into one pixel, so the shifted view groups them differently)."""
+
+    def __init__(self, net: RangeNet, passes: int = 1):
         super().__init__()
+        if not 1 <= int(passes) <= MAX_PASSES:
+            raise SegmentationError(f"segmentation.passes must be 1 to {MAX_PASSES}, got {passes}")
         self.net = net
+        self.passes = int(passes)
+        self.shift = max(1, net.spec.fold // 2)
+        sign = torch.ones(1, net.spec.in_channels, 1, 1)
+        sign[:, Y_CHANNEL] = -1.0
+        self.register_buffer("mirror_sign", sign, persistent=False)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.passes > 1:
+            return self._averaged(x)
         y = self.net.folded_logits(x)  # (b, k, f, h, w / f): reduce over classes before unfolding azimuth
         top, labels = y.max(1)
         conf = 1.0 / torch.exp(y - top.unsqueeze(1)).sum(1)  # = max softmax; cheaper than softmax in ONNX Runtime
         b, f, h, wf = labels.shape
         unfold = lambda t: t.permute(0, 2, 3, 1).reshape(b, h, wf * f)  # noqa: E731
         return unfold(labels.to(torch.uint8)), unfold(conf)
+
+    def _averaged(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Labels and confidence of the mean softmax over ``passes`` views (see the class docstring)."""
+        prob = torch.softmax(self.net(x), 1)
+        prob = prob + _mirror(torch.softmax(self.net(_mirror(x) * self.mirror_sign), 1))  # its own inverse
+        if self.passes > 2:
+            turned = torch.softmax(self.net(torch.roll(x, self.shift, -1)), 1)
+            prob = prob + torch.roll(turned, -self.shift, -1)
+        conf, labels = (prob / self.passes).max(1)
+        return labels.to(torch.uint8), conf
+
+
+def _mirror(t: torch.Tensor) -> torch.Tensor:
+    """Column c -> column -c (mod width) of (..., W) images: the azimuth mirrored about the x axis."""
+    return torch.roll(torch.flip(t, (-1,)), 1, -1)
 
 
 class _OnnxRunner:
@@ -109,18 +142,19 @@ class Segmenter:
     at a time). CPU inference uses ``threads`` threads (1 by default) and ``backend`` onnxruntime (default;
     eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ONNX Runtime runs one
     export per image shape, made (and checked) the first time a shape is seen. ``self.backend`` says which
-    one runs.
+    one runs. ``passes`` (1-3) averages the network over views of each image (Labeller): more accurate,
+    ``passes`` times the network's time.
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
-                 backend: str = "onnxruntime"):
+                 backend: str = "onnxruntime", passes: int = 1):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
         self.threads = threads
         self.card = card
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
-        self.labeller = Labeller(self.model).eval()
+        self.labeller = Labeller(self.model, passes).to(self.device).eval()
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
         self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
@@ -133,7 +167,7 @@ class Segmenter:
         """The network of ``cfg.weights`` ("" = the shipped weights) on ``cfg.device`` with ``cfg.threads``."""
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
-        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend)
+        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
