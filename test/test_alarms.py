@@ -238,6 +238,14 @@ def test_the_rate_sweep_picks_the_most_sensitive_setting_within_the_target():
     # a target no setting meets: none is chosen; the closest is the fewest false WARNs, then the most detections
     sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, -1.0, grid)
     assert chosen is None and closest_rates(sweep, grid)["noise_margin"] == 3.0
+    # a setting that misses an episode on the simulator's own odometry is no candidate, however quiet: without
+    # margin 3, the closest is the noisy margin 2 (it alarms the episode), not the silent margin 4
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, -1.0,
+                                {**grid, "noise_margin": (2.0, 4.0)})
+    rows = {r["noise_margin"]: r for r in sweep}
+    assert rows[4.0]["worst_cell_false_per_10min"] < rows[2.0]["worst_cell_false_per_10min"]
+    assert not rows[4.0]["alarms_every_sim_episode"] and rows[2.0]["alarms_every_sim_episode"]
+    assert chosen is None and closest_rates(sweep, grid)["noise_margin"] == 2.0
     # rate persistence (2 of the last 2 windows) drops the lone spike but not the 6-window episode (alarmed one
     # window later, still within 2): the more sensitive margin 2 becomes the choice
     sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1), 2, 1.0, {**grid, "rate_persist": (1, 2)})
