@@ -118,6 +118,8 @@ def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames
     np.testing.assert_allclose(ca, cb, atol=1e-4)
     with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
         Segmenter.from_config(SegmentationConfig(weights=str(path), passes=4))
+    with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
+        Segmenter.from_config(SegmentationConfig(weights=str(path), passes=2.5))
 
 
 def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames, monkeypatch, caplog):

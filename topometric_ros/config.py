@@ -48,7 +48,7 @@ class SegmentationConfig:
     device: str = "cpu"  # cpu | cuda
     threads: int = 1  # CPU threads for inference (torch and ONNX Runtime)
     backend: str = "onnxruntime"  # CPU runtime: onnxruntime (exported in memory from the checked weights) | eager (PyTorch; also the fallback without onnxruntime)
-    min_confidence: float = 0.0  # network points below this softmax probability become "other" (0 = keep all)
+    min_confidence: float = 0.0  # network points below this softmax probability (with passes > 1: the mean over the passes) become "other" (0 = keep all)
     passes: int = 1  # network passes per scan, probabilities averaged: 1 | 2 (+ the mirror image) | 3 (+ mirror and a half-fold azimuth shift; about +0.7 mIoU at 3x the network time: offline replays, audits)
 
 

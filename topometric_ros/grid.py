@@ -127,7 +127,7 @@ def image_columns(points: int, rows: int) -> int:
     grid's own square cells hold several points each (the plane detector's tiles need them); the network,
     which learned on images of about one point per pixel, reads coarser or sparser images poorly (Mid-360,
     validation floor plan: mIoU 41 at 200 columns, 46 at 512, 55 at 640, 45 at 1024). A sensor's scans thus
-    take a few widths (each new one costs an ONNX export, ~0.3 s, once)."""
+    take a few widths (each new one costs an ONNX export once: 0.2-0.4 s, about 0.7 s with 3 passes)."""
     return min(max(1, -(-int(points) // max(rows * IMAGE_COLUMN_STEP, 1))) * IMAGE_COLUMN_STEP, MAX_COLUMNS)
 
 

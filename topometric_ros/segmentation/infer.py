@@ -23,7 +23,7 @@ from torch import nn
 from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
-from .projection import Projection, project
+from .projection import CHANNELS, Projection, project
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
 
 BACKENDS = ("onnxruntime", "eager")
@@ -39,7 +39,7 @@ Scan = tuple  # (points (N, 3) float32, grid.ScanGrid | beam ids (N,) | None, in
 
 #: Most network passes per scan (config segmentation.passes): the image, its mirror, the image shifted.
 MAX_PASSES = 3
-Y_CHANNEL = 2  # index of y among projection.CHANNELS: negated in the mirror image
+Y_CHANNEL = CHANNELS.index("y")  # negated in the mirror image
 
 
 class Labeller(nn.Module):
@@ -47,13 +47,18 @@ class Labeller(nn.Module):
     (B, H, W) float32 softmax probability of the label). One module, so every backend computes the same.
 
     ``passes`` > 1 averages the softmax of several views of each image, each mapped back to the image's
-    pixels: 2 adds the mirror image (azimuth a -> -a, y -> -y), 3 also the image turned by half a fold (the
-    network folds ``fold`` columns into one pixel, so the shifted view groups them differently)."""
+    pixels: 2 adds the mirror image (azimuth a -> -a, y -> -y; the labels are then mirror-invariant), 3 also
+    the image turned by half a fold (the network folds ``fold`` columns into one pixel, so the shifted view
+    groups them differently; no longer exactly mirror-invariant). The confidence is then the MEAN softmax's
+    top value, lower than one pass's: the same segmentation.min_confidence drops more points."""
 
     def __init__(self, net: RangeNet, passes: int = 1):
         super().__init__()
-        if not 1 <= int(passes) <= MAX_PASSES:
+        if passes != int(passes) or not 1 <= int(passes) <= MAX_PASSES:
             raise SegmentationError(f"segmentation.passes must be 1 to {MAX_PASSES}, got {passes}")
+        if passes > 1 and net.spec.in_channels != len(CHANNELS):
+            raise SegmentationError(f"segmentation.passes {passes} needs the {len(CHANNELS)} projection channels; "
+                                    f"this network takes {net.spec.in_channels}")
         self.net = net
         self.passes = int(passes)
         self.shift = max(1, net.spec.fold // 2)
