@@ -63,14 +63,9 @@ def elevation_deg(points: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(z, np.hypot(x, y)))
 
 
-def azimuth_columns(points: np.ndarray, width: int) -> np.ndarray:
-    """(N,) azimuth cell of each point: round(atan2(y, x) / 2π · width) mod width (cell c centred on azimuth
-    c · 2π / width; column 0 at +x, counter-clockwise)."""
-    return azimuth_cells(np.arctan2(points[:, 1], points[:, 0]), width)
-
-
 def azimuth_cells(azimuth: np.ndarray, width: int) -> np.ndarray:
-    """(N,) cell of each azimuth (rad) on ``width`` cells of 2π / width, as azimuth_columns."""
+    """(N,) cell of each azimuth (rad, atan2(y, x)): round(azimuth / 2π · width) mod width (cell c centred on
+    azimuth c · 2π / width; column 0 at +x, counter-clockwise)."""
     return (np.rint(azimuth * np.float32(width / (2 * np.pi))).astype(np.int64) % width).astype(np.int32)
 
 
@@ -95,7 +90,7 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
     if len(pts) == 0:
         return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
     non_repetitive = model is not None and model.pattern == "non_repetitive"
-    az, keep_azimuth = np.arctan2(pts[:, 1], pts[:, 0]), False
+    az, azimuth = np.arctan2(pts[:, 1], pts[:, 0]), None  # azimuth: kept for a non-repetitive grid only
     if beam is not None and not non_repetitive:
         row, height, source = _rows_from_beams(np.asarray(beam).astype(np.int64), el, model)
     elif model is not None and not non_repetitive:
@@ -107,13 +102,13 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
             row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
             columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
-            keep_azimuth = True  # the network image's finer columns (image_columns)
+            azimuth = az  # the network image's finer columns (image_columns)
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
     width = aligned(model.columns if model is not None
                     else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
     return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
-                    _row_elevations(row, el, height), source, az if keep_azimuth else None)
+                    _row_elevations(row, el, height), source, azimuth)
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:

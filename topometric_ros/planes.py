@@ -268,7 +268,7 @@ def _coplanar(cls, normal, offset, mean, i, j, angle_deg, distance):
 
 class _Rays:
     """Every ray of the scan on its grid (grid.ScanGrid): a point, or nothing (an empty cell; its direction
-    from the row's median elevation and the cell's azimuth centre, grid.azimuth_columns). One point per cell is enough here."""
+    from the row's median elevation and the cell's azimuth centre, grid.azimuth_cells). One point per cell is enough here."""
 
     def __init__(self, pts: np.ndarray, grid):
         self.grid = np.full((grid.height, grid.width), -1, np.int64)
