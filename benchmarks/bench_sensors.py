@@ -3,7 +3,8 @@ network segmentation (shipped weights, ONNX Runtime) and planes — everything a
 
 For every sensors.py model: a few motion-distorted sweeps of office1 written in the model's driver layout
 (sim/writer.driver_cloud), then per sweep the median wall time of each step and of the sum, and scans/s.
-``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models).
+``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models). Sensors of more than
+FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``).
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import numpy as np
 from benchmarks.common import record, single_core
 
 SCANS, REPEATS = 4, 5
+FEW_BEAMS = 64
 
 
 def _clouds(name: str) -> list:
@@ -66,23 +68,32 @@ def _steps(msg, traj, lift, config, segmenter, model) -> dict[str, float]:
 
 
 def main() -> None:
+    from dataclasses import replace
+
     from topometric_ros.config import Config
     from topometric_ros.pipeline import default_segmenter
     from topometric_ros.sensors import SENSORS, sensor
 
     single_core()
     config = Config()
-    segmenter = default_segmenter(config.segmentation)
+    few = replace(config, segmentation=replace(config.segmentation, max_beams=FEW_BEAMS))
+    setups = {"": (config, default_segmenter(config.segmentation)),
+              f"_mb{FEW_BEAMS}": (few, default_segmenter(few.segmentation))}
     names = [n for n in os.environ.get("TOPOMETRIC_BENCH_SENSORS", ",".join(SENSORS)).split(",") if n]
     results = {}
     for name in names:
         clouds, model = _clouds(name), sensor(name)
-        for msg, traj, lift in clouds[:1]:
-            _steps(msg, traj, lift, config, segmenter, model)  # warm-up: the ONNX export for this image shape
-        samples = [_steps(msg, traj, lift, config, segmenter, model) for _ in range(REPEATS) for msg, traj, lift in clouds]
-        med = {k: float(np.median([s[k] for s in samples])) for k in samples[0]}
-        results[name] = {**{f"{k}_ms": round(v, 2) for k, v in med.items()}, "scans_per_s": round(1000 / med["total"], 1),
-                         "points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}
+        results[name] = {"points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}
+        for suffix, (cfg, segmenter) in setups.items():
+            if suffix and model.beams <= FEW_BEAMS:
+                continue
+            for msg, traj, lift in clouds[:1]:
+                _steps(msg, traj, lift, cfg, segmenter, model)  # warm-up: the ONNX export for this image shape
+            samples = [_steps(msg, traj, lift, cfg, segmenter, model) for _ in range(REPEATS)
+                       for msg, traj, lift in clouds]
+            med = {k: float(np.median([s[k] for s in samples])) for k in samples[0]}
+            results[name].update({f"{k}_ms{suffix}": round(v, 2) for k, v in med.items()})
+            results[name][f"scans_per_s{suffix}"] = round(1000 / med["total"], 1)
     record("sensors", results)
 
 

@@ -12,9 +12,11 @@ import torch
 
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig, load_config
+from topometric_ros.grid import scan_grid
 from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
+from topometric_ros.segmentation.projection import nearest_strided, strided
 from topometric_ros.segmentation.train import TrainConfig, augment, class_weights, lovasz_softmax, model_card
 from topometric_ros.sim.frames import simulated_frames
 
@@ -120,6 +122,31 @@ def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames
         Segmenter.from_config(SegmentationConfig(weights=str(path), passes=4))
     with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
         Segmenter.from_config(SegmentationConfig(weights=str(path), passes=2.5))
+
+
+def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_labels(tmp_path, frames):
+    """segmentation.max_beams 16 on a 32-beam scan: the network sees rows 0, 2, 4, ... alone (their labels are
+    those of that 16-row scan, exactly), every other point takes the label and confidence of its
+    projection.nearest_strided neighbour; max_beams >= the rows changes nothing; a bad value is an error."""
+    _, path = _random_weights(tmp_path)
+    f = frames[0]
+    grid = scan_grid(f.points, f.ring)
+    every = Segmenter.from_config(SegmentationConfig(weights=str(path)))
+    half = Segmenter.from_config(SegmentationConfig(weights=str(path), max_beams=16))
+    labels, conf = half.predict(f.points, grid, f.intensity)
+    keep, sub = strided(grid, 2)
+    seen, seen_conf = every.predict(f.points[keep], sub, f.intensity[keep])
+    np.testing.assert_array_equal(labels[keep], seen)
+    source = nearest_strided(f.points, grid, keep, 2)
+    assert (source >= 0).mean() > 0.999
+    np.testing.assert_array_equal(labels[source >= 0], seen[source[source >= 0]])
+    np.testing.assert_array_equal(conf[source >= 0], seen_conf[source[source >= 0]])
+    assert np.all(labels[source < 0] == C.OTHER)
+    same = Segmenter.from_config(SegmentationConfig(weights=str(path), max_beams=32))
+    np.testing.assert_array_equal(same.predict(f.points, grid, f.intensity)[0],
+                                  every.predict(f.points, grid, f.intensity)[0])
+    with pytest.raises(SegmentationError, match="max_beams must be a whole number"):
+        Segmenter.from_config(SegmentationConfig(weights=str(path), max_beams=-1))
 
 
 def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames, monkeypatch, caplog):

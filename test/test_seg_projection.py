@@ -6,8 +6,9 @@ import pytest
 
 from topometric_ros import classes as C
 from topometric_ros.segmentation.metrics import confusion, iou_per_class, miou
-from topometric_ros.grid import scan_grid
-from topometric_ros.segmentation.projection import CHANNELS, ProjectionError, image_shape, project, project_labels
+from topometric_ros.grid import ScanGrid, scan_grid
+from topometric_ros.segmentation.projection import (CHANNELS, ProjectionError, beam_stride, image_shape,
+                                                    nearest_strided, project, project_labels, strided)
 from topometric_ros.sensors import sensor
 from topometric_ros.sim.frames import simulated_frames
 
@@ -108,6 +109,32 @@ def test_bad_input_raises_projection_error(scan):
         project(scan.points[:3], None, np.ones(4, np.float32))
     with pytest.raises(ProjectionError, match=r"\(N, 3\)"):
         project(np.zeros((3, 2), np.float32))
+
+
+def test_rows_between_the_strided_ones_take_their_nearest_in_range_neighbour():
+    """max_beams 2 on a 4-row grid: rows 0 and 2 are segmented; a point of row 1 takes the point below or above
+    it nearer in range, in its own column first, else the next column; the top row (no strided row above) takes
+    the one below; a point with only empty cells around it gets −1."""
+    # (row, col, range m) per point; each point on the x axis turned by its column's azimuth (8 columns)
+    cells = [(0, 0, 5.0), (2, 0, 9.0), (1, 0, 8.5),       # row 1, col 0: above (9.0) is nearer than below (5.0)
+             (0, 3, 4.0), (2, 3, 7.0), (1, 3, 4.2),       # row 1, col 3: below
+             (0, 5, 6.0), (1, 6, 6.1),                    # row 1, col 6: own column empty -> col 5 below
+             (3, 3, 7.1),                                 # top row: only row 2 below it
+             (1, 1, 3.0)]                                 # no point in columns 0-2 of rows 0 / 2 but col 0
+    row, col, rng = (np.array(v) for v in zip(*cells))
+    az = col * (2 * np.pi / 8)
+    points = np.stack([rng * np.cos(az), rng * np.sin(az), np.zeros(len(rng))], 1).astype(np.float32)
+    grid = ScanGrid(row.astype(np.int32), col.astype(np.int32), 4, 8, np.array([-3.0, -1.0, 1.0, 3.0]), "test")
+    assert beam_stride(grid, 0) == 1 and beam_stride(grid, 4) == 1 and beam_stride(grid, 2) == 2
+    assert beam_stride(grid, 3) == 2 and beam_stride(grid, 1) == 4
+    keep, sub = strided(grid, 2)
+    np.testing.assert_array_equal(keep, [0, 1, 3, 4, 6])
+    assert sub.height == 2 and list(sub.row) == [0, 1, 0, 1, 0] and list(sub.elevation_deg) == [-3.0, 1.0]
+    source = nearest_strided(points, grid, keep, 2)
+    # index into keep: 0 = (0,0), 1 = (2,0), 2 = (0,3), 3 = (2,3), 4 = (0,5)
+    np.testing.assert_array_equal(source, [0, 1, 1, 2, 3, 2, 4, 4, 3, 0])
+    lonely = ScanGrid(np.array([0, 1], np.int32), np.array([0, 4], np.int32), 2, 8, np.zeros(2), "test")
+    np.testing.assert_array_equal(nearest_strided(points[:2], lonely, np.array([0]), 2), [0, -1])
 
 
 def test_iou_and_miou_analytic():

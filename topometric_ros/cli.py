@@ -337,14 +337,17 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
         from .segmentation.infer import Segmenter
 
         segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
-                                                             threads=args.threads, passes=args.passes))
+                                                             threads=args.threads, passes=args.passes,
+                                                             max_beams=args.max_beams))
     result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
     metrics = write_report(result, args.out, args.title)
     print(format_table(metrics["rows"]))
     sp = metrics["speed"]
     if sp.get("scans"):
         print(f"speed: {sp['scans_per_s']} scans/s (median {sp['median_ms']} ms/scan over {sp['scans']} scans, "
-              f"{args.device}, {args.threads} thread(s), {args.passes} pass(es), projection + network + back-projection)")
+              f"{args.device}, {args.threads} thread(s), {args.passes} pass(es), "
+              f"{'every beam' if not args.max_beams else f'at most {args.max_beams} beams'}, "
+              "projection + network + back-projection)")
     print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
     return 0
 
@@ -434,6 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     e.add_argument("--passes", type=int, default=1, choices=(1, 2, 3),
                    help="network passes per scan, averaged (segmentation.passes: 2 adds the mirror image, 3 also a shifted one)")
+    e.add_argument("--max-beams", type=int, default=0,
+                   help="most beams the network sees, the rest take their neighbours' labels (segmentation.max_beams; 0 = all)")
     e.add_argument("--every", type=int, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")

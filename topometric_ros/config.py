@@ -50,6 +50,7 @@ class SegmentationConfig:
     backend: str = "onnxruntime"  # CPU runtime: onnxruntime (exported in memory from the checked weights) | eager (PyTorch; also the fallback without onnxruntime)
     min_confidence: float = 0.0  # network points below this softmax probability (with passes > 1: the mean over the passes) become "other" (0 = keep all)
     passes: int = 1  # network passes per scan, probabilities averaged: 1 | 2 (+ the mirror image) | 3 (+ mirror and a half-fold azimuth shift; about +0.7 mIoU at 3x the network time: offline replays, audits)
+    max_beams: int = 0  # most beams the network sees (0 = all): a sensor with more has every k-th beam segmented (k = ceil(beams / max_beams)), the beams between take their nearest segmented neighbour's label (about 1/k of the network's time)
 
 
 @dataclass

@@ -22,8 +22,9 @@ from torch import nn
 
 from .. import classes as C
 from ..config import SegmentationConfig
+from ..grid import as_grid
 from .model import RangeNet, fold_batchnorm
-from .projection import CHANNELS, Projection, project
+from .projection import CHANNELS, Projection, beam_stride, nearest_strided, project, strided
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
 
 BACKENDS = ("onnxruntime", "eager")
@@ -87,6 +88,17 @@ class Labeller(nn.Module):
         return labels.to(torch.uint8), conf
 
 
+def _spread(labels: np.ndarray, conf: np.ndarray, source: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point (labels, confidence) of the points the network saw, given to every point by ``source`` (None:
+    they are every point); a point with no source (−1) is OTHER at confidence 0."""
+    if source is None:
+        return labels, conf
+    found = source >= 0
+    at = np.maximum(source, 0)
+    return (np.where(found, labels.take(at), np.uint8(C.OTHER)).astype(np.uint8),
+            np.where(found, conf.take(at), np.float32(0)).astype(np.float32))
+
+
 def _mirror(t: torch.Tensor) -> torch.Tensor:
     """Column c -> column -c (mod width) of (..., W) images: the azimuth mirrored about the x axis."""
     return torch.roll(torch.flip(t, (-1,)), 1, -1)
@@ -148,15 +160,20 @@ class Segmenter:
     eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ONNX Runtime runs one
     export per image shape, made (and checked) the first time a shape is seen. ``self.backend`` says which
     one runs. ``passes`` (1-3) averages the network over views of each image (Labeller): more accurate,
-    ``passes`` times the network's time.
+    ``passes`` times the network's time. ``max_beams`` (> 0): a scan of more rows has only every k-th row
+    segmented (projection.beam_stride), the rows between take the labels of their nearest neighbours in the
+    rows segmented (projection.nearest_strided): about 1/k of the network's time.
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
-                 backend: str = "onnxruntime", passes: int = 1):
+                 backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
+        if max_beams != int(max_beams) or max_beams < 0:
+            raise SegmentationError(f"segmentation.max_beams must be a whole number >= 0, got {max_beams}")
         self.threads = threads
+        self.max_beams = int(max_beams)
         self.card = card
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         self.labeller = Labeller(self.model, passes).to(self.device).eval()
@@ -172,7 +189,8 @@ class Segmenter:
         """The network of ``cfg.weights`` ("" = the shipped weights) on ``cfg.device`` with ``cfg.threads``."""
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
-        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes)
+        return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
+                   cfg.max_beams)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -184,26 +202,33 @@ class Segmenter:
     def predict_batch(self, scans: Sequence[Scan]) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`predict` for each (points, grid, intensity) of ``scans``; scans whose images have the same
         shape run as one batch."""
-        projected = [project(points, grid, intensity) for points, grid, intensity in scans]
-        out: list = [None] * len(projected)
+        prepared = [self._project(points, grid, intensity) for points, grid, intensity in scans]
+        out: list = [None] * len(prepared)
         shapes: dict[tuple, list[int]] = {}
-        for i, (image, _) in enumerate(projected):
+        for i, (image, _, _) in enumerate(prepared):
             shapes.setdefault(image.shape[1:], []).append(i)
         for members in shapes.values():
-            images = np.concatenate([projected[i][0] for i in members])
+            images = np.concatenate([prepared[i][0] for i in members])
             labels, conf = self._run(images)
             start = 0
             for i in members:
-                proj = projected[i][1]
+                _, proj, source = prepared[i]
                 stop = start + proj.images
-                out[i] = (proj.unproject(labels[start:stop]), proj.unproject(conf[start:stop]))
+                out[i] = _spread(proj.unproject(labels[start:stop]), proj.unproject(conf[start:stop]), source)
                 start = stop
         return out
 
-    def predict_image(self, images: np.ndarray, proj: Projection) -> tuple[np.ndarray, np.ndarray]:
-        """Per-point (labels, confidence) of an already projected scan (its (images, 6, rows, width) stack)."""
-        labels, conf = self._run(images)
-        return proj.unproject(labels), proj.unproject(conf)
+    def _project(self, points: np.ndarray, grid, intensity: np.ndarray | None
+                 ) -> tuple[np.ndarray, Projection, np.ndarray | None]:
+        """(images, projection, source) of one scan: with max_beams, only the rows the network sees are projected
+        and ``source`` (N,) says whose label each point takes (projection.nearest_strided), else None."""
+        grid = as_grid(np.asarray(points, np.float32).reshape(-1, 3), grid)
+        stride = beam_stride(grid, self.max_beams)
+        if stride == 1:
+            return *project(points, grid, intensity), None
+        keep, sub = strided(grid, stride)
+        images, proj = project(points[keep], sub, None if intensity is None else np.asarray(intensity)[keep])
+        return images, proj, nearest_strided(np.asarray(points, np.float32), grid, keep, stride)
 
     def _run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images."""

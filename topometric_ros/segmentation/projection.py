@@ -83,3 +83,49 @@ def project_labels(proj: Projection, labels: np.ndarray, ignore: int = 255) -> n
     image = np.full(proj.images * proj.height * proj.width, ignore, np.uint8)
     image[proj.flat] = labels
     return image.reshape(proj.images, proj.height, proj.width)
+
+
+def beam_stride(grid: ScanGrid, max_beams: int) -> int:
+    """Every how many-th row of ``grid`` the network sees so that it sees at most ``max_beams`` rows
+    (config segmentation.max_beams; 0 = every row): ceil(rows / max_beams), at least 1."""
+    return 1 if max_beams <= 0 or grid.height <= max_beams else -(-grid.height // max_beams)
+
+
+def strided(grid: ScanGrid, stride: int) -> tuple[np.ndarray, ScanGrid]:
+    """(indices of the points on rows 0, stride, 2·stride, ..., the grid of those rows alone: row r -> r / stride)."""
+    keep = np.flatnonzero(grid.row % stride == 0)
+    sub = ScanGrid((grid.row[keep] // stride).astype(np.int32), grid.col[keep], -(-grid.height // stride), grid.width,
+                   grid.elevation_deg[::stride], grid.source, None if grid.azimuth is None else grid.azimuth[keep])
+    return keep, sub
+
+
+def nearest_strided(points: np.ndarray, grid: ScanGrid, keep: np.ndarray, stride: int) -> np.ndarray:
+    """For every point, the index into ``keep`` (the points of the strided rows) of the point whose values it
+    takes: itself for the points of ``keep``; for a point of a row in between, of the points of the strided rows
+    just below and just above it in its own column (else in the next columns), the one nearest to it in range
+    (so a point on a wall does not take the label of a chair edge in front of it); −1 when those cells are
+    all empty. points: (N, 3) sensor frame, m."""
+    h, w = grid.height, grid.width
+    at = np.full(h * w, -1, np.int64)
+    at[grid.row[keep].astype(np.int64) * w + grid.col[keep]] = np.arange(len(keep))
+    out = np.full(len(points), -1, np.int64)
+    out[keep] = np.arange(len(keep))
+    skip = np.flatnonzero(grid.row % stride != 0)
+    if len(skip) == 0 or len(keep) == 0:
+        return out
+    rng = np.sqrt(np.einsum("ij,ij->i", points, points))
+    kept_rng = rng.take(keep)
+    row, col = grid.row.take(skip).astype(np.int64), grid.col.take(skip).astype(np.int64)
+    below = row - row % stride
+    above = np.minimum(below + stride, h - 1)  # the top rows have no strided row above: below twice
+    for dc in (0, -1, 1):
+        left = np.flatnonzero(out.take(skip) < 0)
+        if len(left) == 0:
+            break
+        c = (col.take(left) + dc) % w
+        lo, hi = at.take(below.take(left) * w + c), at.take(above.take(left) * w + c)
+        target = rng.take(skip.take(left))
+        d_lo = np.where(lo >= 0, np.abs(kept_rng.take(np.maximum(lo, 0)) - target), np.inf)
+        d_hi = np.where(hi >= 0, np.abs(kept_rng.take(np.maximum(hi, 0)) - target), np.inf)
+        out[skip.take(left)] = np.where(d_hi < d_lo, hi, lo)
+    return out
