@@ -1,6 +1,10 @@
-"""The ROS 2 node live: a simulated VLP-32C garage bag at 10 Hz for 2 minutes over real DDS.
+"""The ROS 2 node live: a simulated garage bag (VLP-32C by default) at 10 Hz for 2 minutes over real DDS.
 
-    source /opt/ros/jazzy/setup.bash && python -m benchmarks node [seconds] [mode]
+    source /opt/ros/jazzy/setup.bash && python -m benchmarks node    # the defaults
+    python -m benchmarks.bench_node [seconds] [mode] [sensor] [KEY=VALUE ...]
+
+e.g. ``python -m benchmarks.bench_node 60 network OS1-128 segmentation.max_beams=64``: another sensors.py model, and
+node parameters set on top of config/topometric.yaml (recorded as ``node_<mode>_<sensor>[_<key>-<value>].json``).
 
 test/ros_player.py plays the bag at real rate with /clock (clouds best effort, odometry reliable,
 /tf_static latched) into ``python -m topometric_ros.node`` (use_sim_time, config/topometric.yaml, the
@@ -39,19 +43,19 @@ RATE_HZ = 10.0
 TICK = os.sysconf("SC_CLK_TCK")
 
 
-def _bag(seconds: float) -> Path:
+def _bag(seconds: float, sensor: str = "VLP-32C") -> Path:
     from topometric_ros.bag import load_truth
     from topometric_ros.sim.drift import DriftSpec
     from topometric_ros.sim.writer import SIM_VERSION, SimConfig, simulate
 
     frames = int(seconds * RATE_HZ)
-    path = OUT / "bags" / f"garage_rt15_{frames}_10hz"
+    path = OUT / "bags" / (f"garage_rt15_{frames}_10hz" + ("" if sensor == "VLP-32C" else f"_{sensor}"))
     truth = load_truth(path)
     if truth is None or truth["frames"] != frames or truth.get("simulator") != SIM_VERSION:
         shutil.rmtree(path, ignore_errors=True)
         print(f"  simulating {frames} scans at {RATE_HZ:g} Hz ...", flush=True)
-        simulate(SimConfig(scene="garage", frames=frames, rate=RATE_HZ, drift=DriftSpec.parse("rt:1.5")), path,
-                 progress=False)
+        simulate(SimConfig(scene="garage", frames=frames, rate=RATE_HZ, drift=DriftSpec.parse("rt:1.5"),
+                           sensor=sensor), path, progress=False)
     return path
 
 
@@ -107,15 +111,16 @@ def _percentile(xs: list[float], q: float) -> float:
     return xs[min(len(xs) - 1, int(round(q / 100 * (len(xs) - 1))))]
 
 
-def main(seconds: float = 120.0, mode: str = "network") -> dict:
+def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C", settings: dict | None = None) -> dict:
     import rclpy
 
-    bag = _bag(seconds)
+    settings = settings or {}
+    bag = _bag(seconds, sensor)
     work = OUT / "node_run"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     params = yaml.safe_load((ROOT / "config" / "topometric.yaml").read_text())
-    params["/**"]["ros__parameters"].update({"use_sim_time": True, "segmentation.mode": mode})
+    params["/**"]["ros__parameters"].update({"use_sim_time": True, "segmentation.mode": mode, **settings})
     (work / "params.yaml").write_text(yaml.safe_dump(params))
     env = {**os.environ, "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID", "42"),
            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "OMP_NUM_THREADS": "1"}
@@ -158,8 +163,8 @@ def main(seconds: float = 120.0, mode: str = "network") -> dict:
     counters = {k: int(last.get(k, 0)) for k in ("scans_in", "scans_processed", "dropped_scans", "dropped_queue_full",
                                                    "dropped_no_pose", "scan_errors", "windows")}
     results = {
-        "bag": f"garage, VLP-32C, {RATE_HZ:g} Hz, {played['published'].get('/points', 0)} scans "
-               f"({played['bag_s']:.0f} s), rt:1.5 drift", "segmentation": mode,
+        "bag": f"garage, {sensor}, {RATE_HZ:g} Hz, {played['published'].get('/points', 0)} scans "
+               f"({played['bag_s']:.0f} s), rt:1.5 drift", "segmentation": mode, "settings": settings,
         "scans_published": played["published"].get("/points", 0),
         "scans_received": counters["scans_in"], "scans_processed": counters["scans_processed"],
         "dropped_transport": played["published"].get("/points", 0) - counters["scans_in"],
@@ -174,8 +179,18 @@ def main(seconds: float = 120.0, mode: str = "network") -> dict:
         "node_rss_mb_mean": round(statistics.mean(rss), 1) if rss else None, "node_rss_mb_peak": round(peak, 1),
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
     }
-    return record(f"node_{mode}", results)
+    name = "_".join([f"node_{mode}"] + ([sensor] if sensor != "VLP-32C" else [])
+                    + [f"{k}-{v}" for k, v in settings.items()])
+    return record(name, results)
+
+
+def _setting(text: str) -> tuple[str, object]:
+    """KEY=VALUE -> (key, value read as YAML: 64 -> int, on -> True)."""
+    key, _, value = text.partition("=")
+    return key, yaml.safe_load(value)
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 120.0, sys.argv[2] if len(sys.argv) > 2 else "network")
+    args = sys.argv[1:]
+    main(float(args[0]) if args else 120.0, args[1] if len(args) > 1 else "network",
+         args[2] if len(args) > 2 else "VLP-32C", dict(_setting(a) for a in args[3:]))

@@ -16,7 +16,7 @@ from topometric_ros.bag import BagError
 from topometric_ros.config import load_config
 from topometric_ros.pipeline import ProcessedScan, WindowResult
 from topometric_ros.metrics.rpe import rpe as relative_pose_error
-from topometric_ros.replay import ReplayOptions, replay
+from topometric_ros.replay import ReplayOptions, _network_options, replay
 
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
@@ -318,6 +318,11 @@ def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp
     assert code == 0 and summary["scans_processed"] == 6 and summary["no_scans"] == "", out
     assert "segmentation   labels (the clouds' own label field)" in out and "sensor         VLP-32C, velodyne" in out
     assert "NO SCAN" not in out
+    # the network's non-default options are named beside the mode (none here: labels)
+    assert _network_options(load_config(None)) == ""
+    assert _network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64})) == \
+        ", 3 passes, at most 64 beams through the network"
+    assert _network_options(load_config(None, {"segmentation.mode": "labels", "segmentation.max_beams": 64})) == ""
 
 
 def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):

@@ -191,7 +191,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                  monitor.extrinsic if to_sensor is None else to_sensor)
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
-                   segmentation=config.segmentation.mode, sensor=config.sensor.model or "read off each cloud",
+                   segmentation=config.segmentation.mode, segmentation_options=_network_options(config),
+                   sensor=config.sensor.model or "read off each cloud",
                    layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
     summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
     summary["clock_faults"] = rec.clock_faults
@@ -532,12 +533,22 @@ SEGMENTATION_TEXT = {"network": "network (the shipped weights unless segmentatio
                      "labels": "labels (the clouds' own label field)", "none": "none (every point counts as static)"}
 
 
+def _network_options(config: Config) -> str:
+    """The network's non-default options in words ("" for none, or when the network does not run)."""
+    seg = config.segmentation
+    if seg.mode != "network":
+        return ""
+    return "".join([f", {seg.passes} passes" if seg.passes > 1 else "",
+                    f", at most {seg.max_beams} beams through the network" if seg.max_beams else ""])
+
+
 def _run_lines(s: dict) -> list[str]:
     """What ran and what went wrong: segmentation mode, sensor, topics, notes, error, why no scan."""
     if "segmentation" not in s:  # a summary of an older record format
         return [f"notes          {n}" for n in s.get("notes", [])]
     layout = f", {s['layout']} driver layout" if s.get("layout") else ""
-    lines = [f"segmentation   {SEGMENTATION_TEXT.get(s['segmentation'], s['segmentation'])}",
+    lines = [f"segmentation   {SEGMENTATION_TEXT.get(s['segmentation'], s['segmentation'])}"
+             f"{s.get('segmentation_options', '')}",
              f"sensor         {s['sensor']}{layout}",
              f"topics         clouds {s['points_topic']}, odometry {s['odom_topic']}"]
     lines += [f"note           {n}" for n in s["notes"]]
