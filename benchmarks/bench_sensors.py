@@ -57,7 +57,7 @@ def _steps(msg, traj, lift, config, segmenter, model) -> dict[str, float]:
     read = 1000 * (time.perf_counter() - t)
     motion, sweep = None, sweep_to_deskew(scan.time, scan.layout, model, config.sensor.deskew)  # as the monitor
     if sweep is not None:
-        motion = sweep_motion(lambda s: traj.poses_at(np.array([s]))[0] @ lift, scan.stamp, *sweep)
+        motion = sweep_motion(lambda s: traj.poses_at(s) @ lift, scan.stamp, *sweep)
     frame = Frame(scan.points, np.eye(4), scan.stamp, None, scan.beam, scan.intensity, scan.time, scan.columns,
                   motion)
     seg = segment_scan(frame, config, segmenter)

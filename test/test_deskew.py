@@ -23,23 +23,20 @@ def test_deskew_puts_every_point_where_the_sensor_at_the_stamp_sees_it():
     fired = _moving(stamp + times)  # the sensor's pose at each point's firing
     raw = np.einsum("nij,nj->ni", geometry.inverse(fired)[:, :3, :3], world) + geometry.inverse(fired)[:, :3, 3]
 
-    def pose_at(t):
-        return _moving(np.array([t]))[0]
-
-    motion = sweep_motion(pose_at, stamp, 0.0, 0.1)
+    motion = sweep_motion(_moving, stamp, 0.0, 0.1)
     fixed = deskew(raw.astype(np.float32), times, motion)
-    truth = geometry.transform_points(geometry.inverse(pose_at(stamp)), world)
+    truth = geometry.transform_points(geometry.inverse(_moving(np.array([stamp]))[0]), world)
     assert np.abs(raw - truth).max() > 0.1  # the sweep really is smeared (15 cm, 9°)
     np.testing.assert_allclose(fixed, truth, atol=2e-3)  # float32 points 20 m out, linear between 17 knots
 
 
 def test_no_motion_is_the_identity_and_a_missing_pose_gives_none():
     pts = np.random.default_rng(1).normal(size=(100, 3)).astype(np.float32)
-    still = sweep_motion(lambda t: np.eye(4), 5.0, -0.1, 0.0, stamp_at="last")
+    still = sweep_motion(lambda t: np.tile(np.eye(4), (len(t), 1, 1)), 5.0, -0.1, 0.0, stamp_at="last")
     np.testing.assert_allclose(deskew(pts, np.full(100, -0.05), still), pts, atol=1e-6)
-    assert sweep_motion(lambda t: None if t > 5.05 else np.eye(4), 5.0, 0.0, 0.1) is None
+    assert sweep_motion(lambda t: None if t.max() > 5.05 else np.tile(np.eye(4), (len(t), 1, 1)), 5.0, 0.0, 0.1) is None
     # a sweep of zero length (every per-point time at the stamp): nothing to move, no NaN
-    moving = sweep_motion(lambda t: geometry.make_pose(np.eye(3), [t, 0, 0]), 5.0, 0.0, 0.0)
+    moving = sweep_motion(lambda t: geometry.make_pose(np.eye(3), np.stack([t, 0 * t, 0 * t], 1)), 5.0, 0.0, 0.0)
     np.testing.assert_allclose(deskew(pts, np.zeros(100), moving), pts, atol=1e-6)
 
 

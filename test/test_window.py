@@ -32,6 +32,24 @@ def test_lookup_outside_the_buffer_or_beyond_the_gap_is_none():
     assert b.lookup(1.0, 1.0) is not None
 
 
+def test_lookup_many_gives_each_stamp_what_lookup_gives_it():
+    """A sweep's knots in one call: interpolated, exact hits, extrapolated past the newest pose; None as soon
+    as one stamp has no pose (outside, beyond the gap, too far ahead)."""
+    rng = np.random.default_rng(4)
+    stamps = np.cumsum(rng.uniform(0.005, 0.03, 60))
+    b = _buffer(stamps, geometry.yaw_pose(rng.normal(size=60), rng.normal(size=60), 0.1 * rng.normal(size=60),
+                                          rng.uniform(-3, 3, 60), 0.1 * rng.normal(size=60), 0.1 * rng.normal(size=60)))
+    query = np.concatenate([np.linspace(stamps[3], stamps[-1] + 0.05, 17), stamps[[5, 9]]])
+    many = b.lookup_many(query, max_gap_s=0.05, extrapolate_s=0.1)
+    one = np.stack([b.lookup(t, 0.05, extrapolate_s=0.1) for t in query])
+    np.testing.assert_allclose(many, one, atol=1e-12)
+    np.testing.assert_array_equal(many[-2:], one[-2:])  # exact stamps: the stored poses themselves
+    assert b.lookup_many(np.array([stamps[0] - 0.01, stamps[4]]), 0.05) is None  # before the buffer
+    assert b.lookup_many(np.array([stamps[4], stamps[-1] + 0.2]), 0.05, extrapolate_s=0.1) is None  # too far ahead
+    assert b.lookup_many(np.array([stamps[4] + 0.001]), 0.0005) is None  # beyond the gap
+    assert b.lookup_many(np.array([]), 0.05) is None and PoseBuffer(1.0).lookup_many(query, 0.05) is None
+
+
 def test_duplicate_is_ignored_and_backwards_restarts():
     b = _buffer([0.0, 1.0], geometry.yaw_pose([0.0, 1.0], 0.0, 0.0, 0.0))
     assert b.add(1.0, np.eye(4)) == "duplicate"

@@ -63,16 +63,15 @@ def sweep_to_deskew(time: np.ndarray | None, layout: str, model, mode: str,
     return (*sweep_span(period, stamp_at), period, stamp_at)
 
 
-def sweep_motion(pose_at: Callable[[float], np.ndarray | None], stamp: float, t_min: float, t_max: float,
+def sweep_motion(poses_at: Callable[[np.ndarray], np.ndarray | None], stamp: float, t_min: float, t_max: float,
                  period_s: float = 0.1, stamp_at: str = "first", knots: int = KNOTS) -> SweepMotion | None:
-    """The motion over [stamp + t_min, stamp + t_max] from ``pose_at(t)`` (4×4 sensor-to-map pose at time t,
-    None where unknown); None when a pose is missing."""
+    """The motion over [stamp + t_min, stamp + t_max] from ``poses_at(times)`` ((K,) s -> (K, 4, 4)
+    sensor-to-map poses, or None when one is unknown); None when a pose is missing."""
     times = np.linspace(min(t_min, 0.0), max(t_max, 0.0), knots)
-    ref = pose_at(stamp)
-    poses = [pose_at(stamp + float(t)) for t in times]
-    if ref is None or any(p is None for p in poses):
+    poses = poses_at(np.concatenate([[stamp], stamp + times]))
+    if poses is None:
         return None
-    rel = geometry.inverse(ref) @ np.stack(poses)
+    rel = geometry.inverse(poses[0]) @ poses[1:]
     return SweepMotion(times, geometry.matrix_to_rotvec(rel[:, :3, :3]), rel[:, :3, 3].copy(), period_s, stamp_at)
 
 

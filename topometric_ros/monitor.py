@@ -493,11 +493,11 @@ class Monitor:
         gap = self.config.window.max_pose_gap_s
         period = scan.sweep[2]
 
-        def pose_at(t: float):  # odometry that ends inside the sweep is continued to its end
-            pose = self.poses.lookup(t, gap, extrapolate_s=period)
-            return None if pose is None else pose @ self.extrinsic
+        def poses_at(t: np.ndarray):  # odometry that ends inside the sweep is continued to its end
+            poses = self.poses.lookup_many(t, gap, extrapolate_s=period)
+            return None if poses is None else poses @ self.extrinsic
 
-        motion = sweep_motion(pose_at, scan.stamp, *scan.sweep)
+        motion = sweep_motion(poses_at, scan.stamp, *scan.sweep)
         self.count("scans_deskewed" if motion is not None else "not_deskewed")
         return motion
 

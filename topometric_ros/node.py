@@ -1,7 +1,9 @@
 """The ROS 2 node ``topometric_monitor``: the ONLY module that imports rclpy.
 
 A thin adapter: PointCloud2 / Odometry / tf_static messages go to a live Monitor (monitor.py, the same
-code replay runs), whose worker threads do the per-scan work. Diagnostics follow diagnostic_updater's
+code replay runs), whose worker threads do the per-scan work. Clouds are taken serialized and read with
+rosbags (as replay reads bags): a 6 MB cloud (128 × 1024) is deserialized and read in 13 ms so, 19 ms through
+rclpy's message and its array.array (time the callback holds the GIL the workers need). Diagnostics follow diagnostic_updater's
 conventions (its Updater publishes on /diagnostics every ``diagnostic_updater.period`` s, names
 "<node name>: <task>", one hardware_id):
 
@@ -41,9 +43,11 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from . import config as config_module
-from . import geometry, parameters
+from . import bag, geometry, parameters
 from .health import NODE_NAME, TASK, window_values
 from .monitor import Monitor
+
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 CHECK_PERIOD_S = 0.25  # s (node clock), how often STALE / every-scan-failing is checked
 LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR,
@@ -132,7 +136,8 @@ class MonitorNode(Node):
         self.updater.add("latency", self._latency_task)
         self.updater.add("clock", self._clock_task)
         self.marker_pub = self.create_publisher(MarkerArray, "~/planes", 1) if p["publish_markers"] else None
-        self.create_subscription(PointCloud2, p["points_topic"], self._on_cloud, _qos(p["points_qos"]))
+        self._typestore = bag.typestore()
+        self.create_subscription(PointCloud2, p["points_topic"], self._on_cloud, _qos(p["points_qos"]), raw=True)
         self.create_subscription(Odometry, p["odom_topic"], self._on_odom, _qos(p["odom_qos"]))
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -169,7 +174,9 @@ class MonitorNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def _on_cloud(self, msg: PointCloud2) -> None:
+    def _on_cloud(self, raw: bytes) -> None:
+        """A serialized sensor_msgs/PointCloud2 (CDR), read with rosbags (numpy views, no per-field copies)."""
+        msg = self._typestore.deserialize_cdr(raw, CLOUD_TYPE)
         self.rate.tick()
         if not self.p["hardware_id"] and msg.header.frame_id and self.updater.hwid != msg.header.frame_id:
             self.updater.setHardwareID(msg.header.frame_id)

@@ -110,16 +110,49 @@ class PoseBuffer:
                                               np.array([stamp]))
         return poses[0]
 
-    def _extrapolate(self, stamp: float, max_gap_s: float) -> np.ndarray | None:
-        """The newest pose moved on by the last step's motion, scaled to ``stamp`` (None without two poses
-        within max_gap_s)."""
+    def lookup_many(self, stamps: np.ndarray, max_gap_s: float, extrapolate_s: float = 0.0) -> np.ndarray | None:
+        """(K, 4, 4) poses at ``stamps`` (s), each as :meth:`lookup` gives it, in one vectorised pass (a sweep's
+        knots: many small lookups are slow under the GIL of a busy node); None when any of them is missing."""
+        t = np.asarray(stamps, np.float64).reshape(-1)
+        if not self._stamps or len(t) == 0:
+            return None
+        newest = self._stamps[-1]
+        ahead = (t > newest) & (t <= newest + extrapolate_s) if extrapolate_s > 0 else np.zeros(len(t), bool)
+        out = np.empty((len(t), 4, 4))
+        if ahead.any():
+            moved = self._extrapolate(t[ahead], max_gap_s)
+            if moved is None:
+                return None
+            out[ahead] = moved
+        inside = t[~ahead]
+        if len(inside) == 0:
+            return out
+        if inside.min() < self._stamps[0] or inside.max() > newest:
+            return None
+        lo = bisect.bisect_right(self._stamps, float(inside.min())) - 1
+        hi = min(bisect.bisect_right(self._stamps, float(inside.max())) + 1, len(self._stamps))
+        st, poses = np.array(self._stamps[lo:hi]), np.stack(self._poses[lo:hi])
+        i = np.searchsorted(st, inside, side="right") - 1
+        exact = st[i] == inside
+        j = np.minimum(i + 1, len(st) - 1)
+        if np.any(~exact & ((inside - st[i] > max_gap_s) | (st[j] - inside > max_gap_s))):
+            return None
+        found = poses[i].copy()  # an exact hit needs no neighbour
+        if not exact.all():
+            found[~exact] = geometry.interpolate_poses(st, poses, inside[~exact])[0]
+        out[~ahead] = found
+        return out
+
+    def _extrapolate(self, stamp, max_gap_s: float) -> np.ndarray | None:
+        """The newest pose moved on by the last step's motion, scaled to ``stamp`` (s, or (K,) stamps: (K, 4, 4)
+        poses); None without two poses within max_gap_s."""
         if len(self._stamps) < 2 or self._stamps[-1] - self._stamps[-2] > max_gap_s:
             return None
         a, b = self._poses[-2], self._poses[-1]
         step = geometry.inverse(a) @ b
-        u = (stamp - self._stamps[-1]) / (self._stamps[-1] - self._stamps[-2])
-        rot = geometry.rotvec_to_matrix(u * geometry.matrix_to_rotvec(step[:3, :3]))
-        return b @ geometry.make_pose(rot, u * step[:3, 3])
+        u = (np.asarray(stamp, np.float64) - self._stamps[-1]) / (self._stamps[-1] - self._stamps[-2])
+        rot = geometry.rotvec_to_matrix(u[..., None] * geometry.matrix_to_rotvec(step[:3, :3]))
+        return b @ geometry.make_pose(rot, u[..., None] * step[:3, 3])
 
 
 class SlidingWindow:
