@@ -22,9 +22,8 @@ from torch import nn
 
 from .. import classes as C
 from ..config import SegmentationConfig
-from ..grid import as_grid
 from .model import RangeNet, fold_batchnorm
-from .projection import CHANNELS, Projection, beam_stride, nearest_strided, project, strided
+from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
 
 BACKENDS = ("onnxruntime", "eager")
@@ -222,13 +221,13 @@ class Segmenter:
                  ) -> tuple[np.ndarray, Projection, np.ndarray | None]:
         """(images, projection, source) of one scan: with max_beams, only the rows the network sees are projected
         and ``source`` (N,) says whose label each point takes (projection.nearest_strided), else None."""
-        grid = as_grid(np.asarray(points, np.float32).reshape(-1, 3), grid)
+        points, grid = checked(points, grid, intensity)
         stride = beam_stride(grid, self.max_beams)
         if stride == 1:
             return *project(points, grid, intensity), None
         keep, sub = strided(grid, stride)
         images, proj = project(points[keep], sub, None if intensity is None else np.asarray(intensity)[keep])
-        return images, proj, nearest_strided(np.asarray(points, np.float32), grid, keep, stride)
+        return images, proj, nearest_strided(points, grid, keep, stride)
 
     def _run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images."""

@@ -48,10 +48,9 @@ class Projection:
         return flat[..., self.flat]
 
 
-def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) -> tuple[np.ndarray, Projection]:
-    """Range images (images, len(CHANNELS), rows, width) float32 of (N, 3) sensor-frame points on their grid
-    (a grid.ScanGrid, or the cloud's beam ids, or None: see grid.as_grid), and where each point went.
-    ``intensity`` (N,) 0..255, else 0. ProjectionError for arrays that do not fit."""
+def checked(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) -> tuple[np.ndarray, ScanGrid]:
+    """(float32 (N, 3) points, their grid.ScanGrid) of a scan as :func:`project` takes it; ProjectionError for
+    arrays that do not fit."""
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ProjectionError(f"points must be (N, 3), got {points.shape}")
@@ -60,7 +59,14 @@ def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) 
         raise ProjectionError(f"grid / ring must have {n} entries, got {len(getattr(grid, 'row', grid))}")
     if intensity is not None and np.shape(intensity) != (n,):
         raise ProjectionError(f"intensity must be ({n},), got {np.shape(intensity)}")
-    grid = as_grid(points, grid)
+    return points, as_grid(points, grid)
+
+
+def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) -> tuple[np.ndarray, Projection]:
+    """Range images (images, len(CHANNELS), rows, width) float32 of (N, 3) sensor-frame points on their grid
+    (a grid.ScanGrid, or the cloud's beam ids, or None: see grid.as_grid), and where each point went.
+    ``intensity`` (N,) 0..255, else 0. ProjectionError for arrays that do not fit."""
+    points, grid = checked(points, grid, intensity)
     k, rows, width = image_shape(grid)
     row = grid.row.astype(np.int64)
     col = grid.col if grid.azimuth is None else azimuth_cells(grid.azimuth, width)  # finer: where it fired
