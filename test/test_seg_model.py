@@ -16,7 +16,7 @@ from topometric_ros.grid import scan_grid
 from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
-from topometric_ros.segmentation.projection import nearest_strided, strided
+from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
 from topometric_ros.segmentation.train import TrainConfig, augment, class_weights, lovasz_softmax, model_card
 from topometric_ros.sim.frames import simulated_frames
 
@@ -145,6 +145,8 @@ def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_l
     same = Segmenter.from_config(SegmentationConfig(weights=str(path), max_beams=32))
     np.testing.assert_array_equal(same.predict(f.points, grid, f.intensity)[0],
                                   every.predict(f.points, grid, f.intensity)[0])
+    with pytest.raises(ProjectionError, match="grid / ring must have"):  # a bad cloud says so, as without max_beams
+        half.predict(f.points, f.ring[:-1], f.intensity)
     with pytest.raises(SegmentationError, match="max_beams must be a whole number"):
         Segmenter.from_config(SegmentationConfig(weights=str(path), max_beams=-1))
 
