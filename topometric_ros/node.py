@@ -2,8 +2,8 @@
 
 A thin adapter: PointCloud2 / Odometry / tf_static messages go to a live Monitor (monitor.py, the same
 code replay runs), whose worker threads do the per-scan work. Clouds are taken serialized and read with
-rosbags (as replay reads bags): a 6 MB cloud (128 × 1024) is deserialized and read in 13 ms so, 19 ms through
-rclpy's message and its array.array (time the callback holds the GIL the workers need). Diagnostics follow diagnostic_updater's
+rosbags, as replay reads bags: a 6 MB cloud (128 × 1024) is deserialized and read in 13 ms that way, in 19 ms
+through rclpy's message (time the callback holds the GIL the workers need). Diagnostics follow diagnostic_updater's
 conventions (its Updater publishes on /diagnostics every ``diagnostic_updater.period`` s, names
 "<node name>: <task>", one hardware_id):
 

@@ -35,8 +35,9 @@ class Plane:
     not through the origin). offset: d in n·x + d = 0. count: number of inliers. mean: (3,) inlier
     centroid. scatter: (3, 3) Σ (x − mean)(x − mean)ᵀ over all inliers. sample: (≤K, 3) float32 inlier
     points for display (every k-th inlier, scan order). frame: index of the scan in its stream (−1 when
-    unknown). extent: (3, 3) m, the smallest rectangle in the plane that holds every inlier: rows centre, half side along its long axis,
-    half side along its short axis (vectors, sensor frame; None for planes made without fit_plane).
+    unknown). extent: (3, 3) m, the smallest rectangle in the plane that holds every inlier: rows centre,
+    half side along its long axis, half side along its short axis (vectors, sensor frame; None for planes
+    made without fit_plane).
     """
 
     cls: int

@@ -94,25 +94,12 @@ class PoseBuffer:
         """Pose at ``stamp`` interpolated between the poses around it (slerp + linear), or None when the
         stamp is outside the buffer or either neighbour is more than ``max_gap_s`` away. Up to
         ``extrapolate_s`` past the newest pose, the last two poses' motion is continued (constant velocity)."""
-        if self._stamps and extrapolate_s > 0 and self._stamps[-1] < stamp <= self._stamps[-1] + extrapolate_s:
-            return self._extrapolate(stamp, max_gap_s)
-        if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
-            return None
-        i = bisect.bisect_right(self._stamps, stamp) - 1
-        if stamp == self._stamps[i]:  # an exact hit needs no neighbour
-            return self._poses[i].copy()
-        j = min(i + 1, len(self._stamps) - 1)
-        if stamp - self._stamps[i] > max_gap_s or self._stamps[j] - stamp > max_gap_s:
-            return None
-        if i == j:
-            return self._poses[i].copy()
-        poses, _ = geometry.interpolate_poses(np.array(self._stamps[i:j + 1]), np.stack(self._poses[i:j + 1]),
-                                              np.array([stamp]))
-        return poses[0]
+        poses = self.lookup_many(np.array([stamp]), max_gap_s, extrapolate_s)
+        return None if poses is None else poses[0]
 
     def lookup_many(self, stamps: np.ndarray, max_gap_s: float, extrapolate_s: float = 0.0) -> np.ndarray | None:
-        """(K, 4, 4) poses at ``stamps`` (s), each as :meth:`lookup` gives it, in one vectorised pass (a sweep's
-        knots: many small lookups are slow under the GIL of a busy node); None when any of them is missing."""
+        """(K, 4, 4) poses at ``stamps`` (s), each as :meth:`lookup` says, in one vectorised pass (a sweep's knots:
+        many small lookups are slow under the GIL of a busy node); None when any of them is missing."""
         t = np.asarray(stamps, np.float64).reshape(-1)
         if not self._stamps or len(t) == 0:
             return None
@@ -143,16 +130,16 @@ class PoseBuffer:
         out[~ahead] = found
         return out
 
-    def _extrapolate(self, stamp, max_gap_s: float) -> np.ndarray | None:
-        """The newest pose moved on by the last step's motion, scaled to ``stamp`` (s, or (K,) stamps: (K, 4, 4)
-        poses); None without two poses within max_gap_s."""
+    def _extrapolate(self, stamps: np.ndarray, max_gap_s: float) -> np.ndarray | None:
+        """(K, 4, 4): the newest pose moved on by the last step's motion, scaled to each of ``stamps`` (K,) s;
+        None without two poses within max_gap_s."""
         if len(self._stamps) < 2 or self._stamps[-1] - self._stamps[-2] > max_gap_s:
             return None
         a, b = self._poses[-2], self._poses[-1]
         step = geometry.inverse(a) @ b
-        u = (np.asarray(stamp, np.float64) - self._stamps[-1]) / (self._stamps[-1] - self._stamps[-2])
-        rot = geometry.rotvec_to_matrix(u[..., None] * geometry.matrix_to_rotvec(step[:3, :3]))
-        return b @ geometry.make_pose(rot, u[..., None] * step[:3, 3])
+        u = (stamps - self._stamps[-1]) / (self._stamps[-1] - self._stamps[-2])
+        rot = geometry.rotvec_to_matrix(u[:, None] * geometry.matrix_to_rotvec(step[:3, :3]))
+        return b @ geometry.make_pose(rot, u[:, None] * step[:3, 3])
 
 
 class SlidingWindow:
