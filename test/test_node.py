@@ -561,6 +561,9 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
         assert agg is not None, launch.log()[-3000:]
         names = sorted(s.name for s in agg[1].status)
         assert any(n.endswith(CONSISTENCY) or n.endswith("map consistency") for n in names), names
+        end = time.monotonic() + 10  # the aggregator's status can arrive before discovery shows our endpoints
+        while not listener.node.get_subscriptions_info_by_topic("/launch_points") and time.monotonic() < end:
+            time.sleep(0.1)
         subs = listener.node.get_subscriptions_info_by_topic("/launch_points")
         assert [(s.node_name, s.node_namespace) for s in subs] == [(NODE, "/robot1")], subs
         assert listener.node.get_subscriptions_info_by_topic("/yaml_points") == []
