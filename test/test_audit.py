@@ -283,7 +283,7 @@ def test_audit_on_a_two_node_cluster_through_address(fleet, tmp_path, two_node_c
     r = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "audit", *map(str, _good(fleet)), "--out", str(out),
                         "--address", address, "--quiet", *LABELS], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr[-3000:]
-    assert f"audit: 4 bags: 4 done, 0 cached, 0 failed" in r.stdout and f"cluster {address}" in r.stdout
+    assert "audit: 4 bags: 4 done, 0 cached, 0 failed" in r.stdout and f"cluster {address}" in r.stdout
     rows = json.loads((out / "fleet.json").read_text())["bags"]
     nodes = {row["worker"].split(" node ")[1] for row in rows}
     assert len(nodes) == 2, rows  # both nodes ran bags (1 CPU each, 4 tasks)

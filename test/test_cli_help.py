@@ -45,3 +45,16 @@ def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
     res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--groups", "-1"],
                          capture_output=True, text=True)
     assert res.returncode == 2 and "expected a whole number >= 0, got '-1'" in res.stderr
+
+
+def test_alarms_grid_takes_health_settings_in_their_own_type_and_refuses_others():
+    from topometric_ros.cli import build_parser
+
+    args = build_parser().parse_args(["alarms", "--grid", "rate_sigma=0,1.5", "--grid", "health.rate_persist=1,2"])
+    assert dict(args.grid) == {"rate_sigma": (0.0, 1.5), "rate_persist": (1, 2)}
+    assert isinstance(dict(args.grid)["rate_persist"][1], int)
+    for bad, why in (("window_size=5", "KEY a health setting"), ("rate_limits=a,b", "not numeric"),
+                     ("rate_persist=1.5", "invalid literal")):
+        res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--grid", bad],
+                             capture_output=True, text=True)
+        assert res.returncode == 2 and why in res.stderr, (bad, res.stderr)

@@ -46,7 +46,7 @@ def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped
     assert error is None, error
     assert result["row"]["status"] == "ok" and result["row"]["scans"] == 10
     assert int(result["row"]["worker"].split(" ")[0].split(":")[1]) != os.getpid()  # ran in a Ray worker
-    single = replay(short_bag, tmp_path / "single", config, ReplayOptions(progress=False, plot=False))
+    replay(short_bag, tmp_path / "single", config, ReplayOptions(progress=False, plot=False))
     strip = lambda recs: [{k: v for k, v in r.items() if not k.startswith("ms_")} for r in recs]  # noqa: E731
     shipped = json.loads(result["files"]["windows.json"])
     assert strip(shipped["windows"]) == strip(json.loads((tmp_path / "single" / "windows.json").read_text())["windows"])

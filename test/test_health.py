@@ -228,9 +228,9 @@ def test_with_persistence_every_level_comes_one_window_later_for_a_steady_rise()
         assert b == (a if k > 4.0 else "OK")  # the first window above 4σ (k = 4.0) is the one held back
 
 
-def _moving(rot=0.0, trans=0.0, speed=0.0, turn=0.0):
+def _moving(rot=0.0, trans=0.0, speed=0.0, turn=0.0, rot_se=float("nan"), trans_se=float("nan")):
     r = WindowResult([0.0, 0.8], pne=1.0, cpv=0.01, n_planes=40, n_groups=10, rot_rate=rot, trans_rate=trans,
-                     speed=speed, turn_rate=turn)
+                     speed=speed, turn_rate=turn, rot_rate_se=rot_se, trans_rate_se=trans_se)
     return r
 
 
@@ -294,3 +294,17 @@ def test_rate_persistence_needs_repeated_windows_between_warn_and_error():
     # absolute limits are a hard line: at once whatever rate_persist says
     absolute = Health(replace(c, rate_limits="absolute", rot_rate_warn=1.0, rot_rate_error=2.0))
     assert absolute.assess(_moving(rot=1.5)).level == "WARN"
+
+
+def test_rate_sigma_judges_a_rate_by_its_lower_bound():
+    """rate_sigma 2: 1.5 °/s ± 0.1 (lower bound 1.3) is over the 1.0 °/s WARN limit, 1.5 ± 0.4 (0.7) is not;
+    2.5 ± 0.1 is at ERROR (limit 2.0), 2.5 ± 0.4 (1.7) only at WARN. rate_sigma 0 or no standard error: the
+    rate itself, as before."""
+    c = HealthConfig(noise_windows=0, warn_persist=1, rot_floor=1.0, rate_persist=1, rate_sigma=2.0)
+    r = _moving(rot=1.5, rot_se=0.1)
+    assert Health(c).assess(r).level == "WARN" and "rotation drift: 1.5 ± 0.1 °/s (limit 1" in r.message
+    assert Health(c).assess(_moving(rot=1.5, rot_se=0.4)).level == "OK"
+    assert Health(c).assess(_moving(rot=2.5, rot_se=0.1)).level == "ERROR"
+    assert Health(c).assess(_moving(rot=2.5, rot_se=0.4)).level == "WARN"
+    assert Health(c).assess(_moving(rot=1.5)).level == "WARN"  # no standard error: the rate itself
+    assert Health(replace(c, rate_sigma=0.0)).assess(_moving(rot=1.5, rot_se=0.4)).level == "WARN"

@@ -457,3 +457,22 @@ def test_stamps_going_back_do_not_end_a_failure_streak_while_the_receive_clock_g
     assert m.check(501.5)[0] == "ERROR"
     m.add_pose(50.0, base_pose(50.0), received=450.0)  # sim time jumped back with the stamps (same offset)
     assert m.failing_since is None
+
+
+def test_an_internal_error_after_scoring_is_counted_and_the_live_threads_go_on():
+    """A window function whose result health cannot read (here None: an internal bug) raises in the last
+    stage's thread after scoring; the thread must survive it (else a blocking feeder waits forever), count
+    it with its reason and keep processing."""
+    import threading
+
+    m = Monitor(config(**{"window.queue_size": 2}), None, lambda scans, cfg: None, live=True, block=True,
+                stages=split_floor_scan())
+    feeder = threading.Thread(target=feed, args=(m, 100.0 + np.arange(9) / 5.0), daemon=True)
+    feeder.start()
+    feeder.join(timeout=20)
+    assert not feeder.is_alive(), "the feeder is stuck behind a dead stage thread"
+    assert m.flush(timeout=20)
+    assert all(t.is_alive() for t in m._threads)
+    m.close()
+    assert m.counters["scans_processed"] == 9 and m.counters["scan_errors"] == 3
+    assert "internal error: AttributeError" in m.last_error

@@ -171,9 +171,10 @@ def cmd_alarms(args: argparse.Namespace) -> int:
     if args.calibrate_rates:
         from .experiments.alarms import calibrate_rates, format_rate_calibration
 
+        grid = {"grid": dict(args.grid)} if args.grid else {}
         doc = calibrate_rates(args.out, _monitor_config(args), args.scene, frames=args.frames,
                               free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
-                              target_per_10min=args.target, progress=not args.quiet, **plan)
+                              target_per_10min=args.target, progress=not args.quiet, **grid, **plan)
         print(format_rate_calibration(doc))
         print(f"wrote {Path(args.out) / 'rate_calibration.json'}")
         return 0
@@ -214,6 +215,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _floats(text: str) -> tuple:
     return tuple(float(x) for x in text.split(",") if x.strip())
+
+
+def _grid_axis(text: str) -> tuple[str, tuple]:
+    """KEY=V1,V2 of --grid: a health setting (config.HealthConfig) and the values to sweep, in its type."""
+    import dataclasses
+
+    from .config import HealthConfig
+
+    key, _, values = text.partition("=")
+    key = key.strip().removeprefix("health.")
+    fields = {f.name: f for f in dataclasses.fields(HealthConfig)}
+    if key not in fields or not values.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=V1,V2 with KEY a health setting, got {text!r}")
+    kind = type(getattr(HealthConfig(), key))
+    if kind not in (int, float):
+        raise argparse.ArgumentTypeError(f"health.{key} is not numeric: it cannot be swept")
+    try:
+        return key, tuple(kind(v) for v in values.split(",") if v.strip())
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
 
 
 def _ints(text: str) -> tuple:
@@ -503,6 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
     a.add_argument("--calibrate-rates", action="store_true",
                    help="sweep the relative rate limits (learned floor, motion shares) on the calibration split")
+    a.add_argument("--grid", type=_grid_axis, action="append", default=None, metavar="KEY=V1,V2",
+                   help="--calibrate-rates: sweep these health settings instead of the default grid (repeatable, "
+                        "e.g. --grid rate_sigma=0,1,2; the others stay at their configured values)")
     a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed")
     a.add_argument("--margin", type=float, default=0.25,
                    help="calibration: the target must also hold this many sigma below the chosen one")

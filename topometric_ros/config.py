@@ -128,10 +128,11 @@ class HealthConfig:
     trans_per_m: float = 0.01  # m per m travelled (a fraction of the distance), added to the translation limit (relative limits)
     error_factor: float = 2.0  # ERROR at this multiple of a rate's WARN limit (relative limits)
     rate_persist: int = 2  # a drift rate between its WARN and ERROR limits alarms once it was above WARN in this many of the last persist_windows windows (1 = at once; relative limits only); at ERROR at once
+    rate_sigma: float = 1.5  # a drift rate is judged by its lower bound rate − rate_sigma × its standard error (metrics/drift_rate.py: each scan's planes one sample), so that one scan's pose noise does not read as drift (0 = the rate itself)
     noise_windows: int = 15  # windows that learn the run's noise floor of the rates; meanwhile the floors are noise_max_factor x theirs
     noise_quantile: float = 0.75  # quantile of the learning windows' rates (above the motion share) the floor is learned from
-    noise_margin: float = 2.0  # learned floor = this x that quantile
-    noise_max_factor: float = 3.0  # a learned floor is at most this x the configured one (keeps drift detectable)
+    noise_margin: float = 1.0  # learned floor = this x that quantile
+    noise_max_factor: float = 2.0  # a learned floor is at most this x the configured one (keeps drift detectable)
     rot_rate_warn: float = 0.6  # deg/s, absolute rotation drift limit -> WARN at once (rate_limits absolute; 0 = off)
     rot_rate_error: float = 1.2  # deg/s -> ERROR (rate_limits absolute; 0 = off)
     trans_rate_warn: float = 0.05  # m/s, absolute translation drift limit -> WARN at once (rate_limits absolute; 0 = off)

@@ -15,7 +15,9 @@ The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s fro
 planes' normals and offsets) are physical rates, the same at every site, so they need no baseline: their
 limits (RateLimits) act from the first window; a rate at its ERROR limit alarms at once, one between WARN and
 ERROR (relative limits) once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows: a
-SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once.
+SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once. With
+``rate_sigma`` > 0 a rate is judged by its lower bound rate − rate_sigma × its standard error (the drift
+rate fit's jackknife over scans): a rate one scan's pose noise could make is no alarm.
 They carry most detections; the sigma alarms catch inconsistency without a trend (pose noise, jumps).
 A scan placed off by more than the co-plane gates joins no co-plane group, so the robust rate fit never sees
 it: its ``agreement`` (the share of its plane inliers that another scan sees in the same place; cpv.py) below
@@ -136,7 +138,7 @@ class Health:
         persistent = sum(self._high) >= c.warn_persist
         limits = self.rates.limits(result)
         for rate, (meaning, unit) in RATES.items():
-            value = float(getattr(result, rate, float("nan")))
+            value, shown = self.rates.judged(result, rate)
             warn, error = warn_at[rate], error_at[rate] = limits[rate]
             high = self._rate_high[rate]
             high.append(bool(np.isfinite(value) and warn > 0 and value >= warn))
@@ -144,13 +146,13 @@ class Health:
                 continue  # no co-plane group: already reported as CPV undefined
             if error > 0 and value >= error:
                 level = _worse(level, "ERROR")
-                alarms.append(f"{meaning}: {value:.3g} {unit} (limit {error:.3g}{self.rates.why(result)})")
+                alarms.append(f"{meaning}: {shown} {unit} (limit {error:.3g}{self.rates.why(result)})")
             elif high[-1] and sum(high) >= self.rates.persist:
                 level = _worse(level, "WARN")
-                alarms.append(f"{meaning}: {value:.3g} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
+                alarms.append(f"{meaning}: {shown} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
                               (f" ({sum(high)} of the last {len(high)} windows)" if self.rates.persist > 1 else ""))
             elif high[-1]:
-                notes.append(f"watch: {meaning} {value:.3g} {unit} above limit {warn:.3g} in {sum(high)} of "
+                notes.append(f"watch: {meaning} {shown} {unit} above limit {warn:.3g} in {sum(high)} of "
                              f"{self.rates.persist} windows needed")
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
@@ -277,6 +279,16 @@ class RateLimits:
         alarms: rate_persist for relative limits; absolute limits act at once."""
         return self.c.rate_persist if self.c.rate_limits == "relative" else 1
 
+    def judged(self, result: Any, rate: str) -> tuple[float, str]:
+        """(value the limits judge, how the message shows it) of one drift rate: the rate itself, or with
+        rate_sigma > 0 and a standard error (``<rate>_se``), its lower bound rate − rate_sigma × se (≥ 0),
+        shown as "rate ± se"."""
+        value = float(getattr(result, rate, float("nan")))
+        se = float(getattr(result, f"{rate}_se", float("nan")))
+        if self.c.rate_sigma <= 0 or not np.isfinite(se):
+            return value, f"{value:.3g}"
+        return max(value - self.c.rate_sigma * se, 0.0), f"{value:.3g} ± {se:.2g}"
+
     @property
     def learning(self) -> bool:
         return self.c.rate_limits == "relative" and self.seen < self.c.noise_windows
@@ -352,7 +364,7 @@ def window_values(result: Any, counters: Mapping[str, int] | None = None,
                   extra: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The KeyValue strings of one window's status (docs/design.md's list, then the monitor's counters)."""
     values = {"pne": result.pne, "cpv": result.cpv}
-    for name in ("rpe_estimate", *RATES, "speed", "turn_rate"):
+    for name in ("rpe_estimate", *RATES, *(f"{r}_se" for r in RATES), "speed", "turn_rate"):
         values[name] = getattr(result, name, float("nan"))
     for name in ("mme", "mpv", "mom"):
         if getattr(result, name, None) is not None:

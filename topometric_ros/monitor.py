@@ -543,7 +543,11 @@ class Monitor:
                 self._busy[stage] = True
                 self._cond.notify_all()
             try:
-                out = self._run_stage(stage, item)
+                try:
+                    out = self._run_stage(stage, item)
+                except Exception as e:  # noqa: BLE001 - a dead stage thread would stall the feeder and every later scan
+                    self._error("scan_errors", f"scan {item[1]}: internal error: {type(e).__name__}: {e}")
+                    out = None
                 if out is not None and not last:
                     with self._cond:
                         nxt = self._queues[stage + 1]

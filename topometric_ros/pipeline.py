@@ -81,6 +81,8 @@ class WindowResult:
     n_clusters: int = 0
     rot_rate: float = float("nan")
     trans_rate: float = float("nan")
+    rot_rate_se: float = float("nan")
+    trans_rate_se: float = float("nan")
     rpe_estimate: float = float("nan")
     speed: float = float("nan")
     turn_rate: float = float("nan")
@@ -276,6 +278,8 @@ class PlaneScores:
     n_groups: int
     agreement: float = float("nan")
     agreement_scan: int = -1
+    rot_rate_se: float = float("nan")
+    trans_rate_se: float = float("nan")
 
 
 def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None,
@@ -297,8 +301,9 @@ def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, fl
         widen = m.rate_gate_per_m * distance if np.isfinite(distance) else 0.0
         rate_groups = groups if widen <= 0 else cpv_mod.coplane_groups(
             wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts, m.cpv_angle_deg, m.cpv_epsilon + widen)
-        rot, trans = drift_mod.drift_rates(rate_groups, wp.scans, wp.normals, wp.means, wp.counts, times)
-    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement, worst)
+        rot, trans, rot_se, trans_se = drift_mod.drift_rates(rate_groups, wp.scans, wp.normals, wp.means, wp.counts,
+                                                             times)
+    return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement, worst, rot_se, trans_se)
 
 
 def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult:
@@ -318,6 +323,7 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
     ps = plane_metrics(wp, stamps, config, timings, distance=speed * (stamps[-1] - stamps[0]))
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
+                          rot_rate_se=ps.rot_rate_se, trans_rate_se=ps.trans_rate_se,
                           rpe_estimate=drift_mod.rpe_estimate(ps.rot_rate, ps.trans_rate, stamps), speed=speed,
                           turn_rate=turn_rate, agreement=ps.agreement, agreement_scan=ps.agreement_scan,
                           timings=timings)

@@ -103,7 +103,8 @@ class _Recorder:
         a = m.health.last
         rec = {"index": len(self.records), "start": result.stamps[0], "end": result.stamps[-1],
                "n_scans": len(scans), "pne": result.pne, "cpv": result.cpv, "rot_rate": result.rot_rate,
-               "trans_rate": result.trans_rate, "rpe_estimate": result.rpe_estimate}
+               "trans_rate": result.trans_rate, "rot_rate_se": result.rot_rate_se,
+               "trans_rate_se": result.trans_rate_se, "rpe_estimate": result.rpe_estimate}
         for name in ("mme", "mpv", "mom"):
             if getattr(result, name) is not None:
                 rec[name] = getattr(result, name)
@@ -396,6 +397,7 @@ def load_windows(path: str | Path) -> dict:
 LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
 BASELINE_COLOUR = "#7fa7d0"
 #: (record key, axis label with its unit) of each row of metrics.png
+SE_COLOUR = "#7a7a7a"
 PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate", "rotation drift (°/s)"),
              ("trans_rate", "translation drift (m/s)"),
              ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)"),
@@ -447,7 +449,11 @@ def _plot_row(ax, records: list[dict], key: str, label: str, t0: float, truth: d
         ax.axvspan(learning[0], learning[1], color=BASELINE_COLOUR, alpha=0.18, lw=0)
     for ep in (truth or {}).get("episodes", []):
         ax.axvspan(ep["start"] - t0, ep["end"] - t0, facecolor="none", edgecolor="grey", hatch="//", lw=0.5)
-    ax.plot(t, [_num(r.get(key)) for r in records], "k.-", lw=1, ms=3)
+    values = np.array([_num(r.get(key)) for r in records])
+    if any(f"{key}_se" in r for r in records):  # the rate's standard error (jackknife over scans)
+        se = np.array([_num(r.get(f"{key}_se")) for r in records])
+        ax.fill_between(t, values - se, values + se, color=SE_COLOUR, alpha=0.3, lw=0)
+    ax.plot(t, values, "k.-", lw=1, ms=3)
     if key == "rpe_estimate":
         ax.plot(t, [_num(r.get("rpe")) for r in records], ".-", color="#4a7ab0", lw=1, ms=3)
     for level in ("warn", "error"):
@@ -483,6 +489,8 @@ def _legend_handles(records: list[dict], truth: dict | None, learning) -> list:
                 Line2D([], [], color=LEVEL_COLOURS["ERROR"], ls="--", lw=1, label="ERROR limit"),
                 Patch(color=LEVEL_COLOURS["WARN"], alpha=0.35, label="WARN window"),
                 Patch(color=LEVEL_COLOURS["ERROR"], alpha=0.35, label="ERROR window")]
+    if any("rot_rate_se" in r for r in records):
+        handles.append(Patch(color=SE_COLOUR, alpha=0.3, label="drift rate ± standard error"))
     if learning is not None:
         handles.append(Patch(color=BASELINE_COLOUR, alpha=0.18, label=f"learning baseline ({learning[2]} windows)"))
     if truth and truth.get("episodes"):

@@ -154,7 +154,8 @@ def reassess(records: list[dict], health: HealthConfig) -> list[dict]:
     for r in records:
         res = _Window(r["pne"], r["cpv"], r["n_planes"], r.get("rot_rate", np.nan), r.get("trans_rate", np.nan),
                       r.get("speed", np.nan), r.get("turn_rate", np.nan), r.get("agreement", np.nan),
-                      r.get("agreement_scan", -1), r.get("n_scans", 0), r.get("agreement_stamp", np.nan))
+                      r.get("agreement_scan", -1), r.get("n_scans", 0), r.get("agreement_stamp", np.nan),
+                      r.get("rot_rate_se", np.nan), r.get("trans_rate_se", np.nan))
         a = h.assess(res)
         out.append({**r, "level": res.level, "message": res.message, **assessment_fields(a)})
     return out
@@ -165,12 +166,14 @@ class _Window:
 
     def __init__(self, pne: float, cpv: float, n_planes: int, rot_rate: float, trans_rate: float,
                  speed: float = np.nan, turn_rate: float = np.nan, agreement: float = np.nan,
-                 agreement_scan: int = -1, n_scans: int = 0, agreement_stamp: float = np.nan):
+                 agreement_scan: int = -1, n_scans: int = 0, agreement_stamp: float = np.nan,
+                 rot_rate_se: float = np.nan, trans_rate_se: float = np.nan):
         self.pne, self.cpv, self.n_planes = float(pne), float(cpv), int(n_planes)
         self.rot_rate, self.trans_rate = float(rot_rate), float(trans_rate)
         self.speed, self.turn_rate, self.agreement = float(speed), float(turn_rate), float(agreement)
         self.agreement_scan, self.n_scans = int(agreement_scan), int(n_scans)
         self.agreement_stamp = float(agreement_stamp)
+        self.rot_rate_se, self.trans_rate_se = float(rot_rate_se), float(trans_rate_se)
         self.level, self.message = "OK", ""
 
 

@@ -17,7 +17,7 @@ along a direction no plane faces, ω about the only normal seen) stay zero (mini
 rates are the part of the drift planes can see.
 
 Constant pose errors (a window shifted as a whole) give no rate; pose noise without a trend gives a small
-one. The rates are in physical units, so their alarm limits do not depend on the site. Valid while the
+one, and the rates' standard errors (a jackknife over the window's scans) say how small. The rates are in physical units, so their alarm limits do not depend on the site. Valid while the
 drift stays inside the co-plane gates across the window (cpv: ε in offset, the angle gate in normals).
 
 ``rpe_estimate`` turns the rates into the paper's RPE (Eq. 4) over consecutive scan pairs, for small errors:
@@ -45,14 +45,14 @@ def _skew(n: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times) -> tuple[float, float]:
-    """(rotation rate deg/s, translation rate m/s) of a window's co-plane groups.
+def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times):
+    """(rotation rate deg/s, translation rate m/s, their standard errors) of a window's co-plane groups.
 
     scans (M,) scan position of each plane, normals (M, 3) and means (M, 3, m) in the window frame, counts
-    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0). NaN, NaN when
-    there is no group."""
+    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0). The standard
+    errors count each scan's planes as one sample (_scan_jackknife_covariance). NaNs when there is no group."""
     if not groups:
-        return float("nan"), float("nan")
+        return float("nan"), float("nan"), float("nan"), float("nan")
     normals, means = np.asarray(normals, np.float64).reshape(-1, 3), np.asarray(means, np.float64).reshape(-1, 3)
     counts, times, scans = np.asarray(counts, np.float64), np.asarray(times, np.float64), np.asarray(scans)
     members = np.concatenate([g.members for g in groups])
@@ -69,8 +69,33 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     design[:, 1:, :3] = -t[:, None, None] * np.stack([_skew(x) for x in n]) / NORMAL_SCALE_FLOOR
     obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
                           normals[members] / NORMAL_SCALE_FLOOR], axis=1)
-    x = _robust_rate(design, obs, onehot, w)
-    return float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:]))
+    x, keep = _robust_rate(design, obs, onehot, w)
+    rot, trans = float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:]))
+    cov = _scan_jackknife_covariance(design, obs, onehot, keep, scans[members])
+    return rot, trans, float(np.degrees(_norm_se(x[:3], cov[:3, :3]))), _norm_se(x[3:], cov[3:, 3:])
+
+
+def _scan_jackknife_covariance(design, obs, group, weight, scan) -> np.ndarray:
+    """(P, P) jackknife covariance of the rates over scans, (K−1)/K Σ_s (x_s − x̄)(x_s − x̄)ᵀ, x_s the weighted fit
+    again without scan s, with the robust fit's final ``weight`` (one solve per scan). A scan's own pose error
+    moves every plane it sees, so its planes are one sample, not many; under per-scan pose noise this matches
+    the rates' real spread (test_drift_rate). Zero with fewer than three scans."""
+    used = np.unique(scan[weight > 0])
+    p = design.shape[2]
+    if len(used) < 3:
+        return np.zeros((p, p))
+    xs = np.stack([_weighted_fit(design, obs, group, np.where(scan == s, 0.0, weight)) for s in used])
+    d = xs - xs.mean(axis=0)
+    return d.T @ d * (len(used) - 1) / len(used)
+
+
+def _norm_se(v: np.ndarray, cov: np.ndarray) -> float:
+    """Standard error of |v| from v's covariance (first order along v; the largest spread when v = 0)."""
+    length = np.linalg.norm(v)
+    if length > 0:
+        u = v / length
+        return float(np.sqrt(max(u @ cov @ u, 0.0)))
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
 
 
 def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -79,25 +104,25 @@ def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """The rates x (P,) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust fit, so that one
-    group joining two different surfaces (a step inside the group, not a trend) is rejected instead of
-    bending the rates. design (M, R, P) and obs (M, R) in noise-floor units, group (M, G) one-hot
+def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray):
+    """(rates x (P,), final weights (M,)) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust
+    fit, so that one group joining two different surfaces (a step inside the group, not a trend) is rejected
+    instead of bending the rates. design (M, R, P) and obs (M, R) in noise-floor units, group (M, G) one-hot
     membership, weight (M,) prior weights.
 
     Iteratively reweighted least squares (Tukey's biweight on each member's residual norm) from two starts,
     x = 0 (no drift: a step group stands out and is dropped) and plain least squares (a real drift, which
     from x = 0 could look like outliers itself); the result that leaves the smaller Tukey loss at the noise
     floor (residual 1) wins, each judged with its own final weights."""
-    best, best_loss = np.zeros(design.shape[2]), np.inf
+    best, best_keep, best_loss = np.zeros(design.shape[2]), weight, np.inf
     for start in (np.zeros(design.shape[2]), _weighted_fit(design, obs, group, weight)):
         x, keep = _irls(design, obs, group, weight, start)
         if best_loss < np.inf and np.allclose(x, best, rtol=0, atol=TOLERANCE):
             continue  # both starts led to the same rates
         loss = float(weight @ _tukey_loss(_residuals(design, obs, group, keep, x) / TUKEY_C))
         if loss < best_loss - 1e-12:
-            best, best_loss = x, loss
-    return best
+            best, best_keep, best_loss = x, keep, loss
+    return best, best_keep
 
 
 def _irls(design, obs, group, weight, x):
