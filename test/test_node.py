@@ -319,6 +319,8 @@ def test_statuses_follow_diagnostic_updater_conventions(drift_run):
     assert lat and np.median(lat) < 1.0, lat  # stamp -> window result in sim time
     w = drift_run["live"][5]
     assert re.fullmatch(r"1700000\d\d\d\.\d+", w["values"]["window_start"]), w["values"]["window_start"]
+    # the drift rates come with their standard errors (finite, non-negative)
+    assert all(0.0 <= float(w["values"][f"{r}_se"]) < float("inf") for r in ("rot_rate", "trans_rate")), w["values"]
 
 
 def test_markers_are_in_the_map_frame(drift_run):
