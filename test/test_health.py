@@ -308,3 +308,13 @@ def test_rate_sigma_judges_a_rate_by_its_lower_bound():
     assert Health(c).assess(_moving(rot=2.5, rot_se=0.4)).level == "WARN"
     assert Health(c).assess(_moving(rot=1.5)).level == "WARN"  # no standard error: the rate itself
     assert Health(replace(c, rate_sigma=0.0)).assess(_moving(rot=1.5, rot_se=0.4)).level == "WARN"
+
+
+def test_pose_noise_is_a_warn_of_its_own_when_the_rates_scatter_more_than_the_limit():
+    """noise_warn 1: a rate whose standard error reaches its WARN limit (1.0 °/s here) is pose noise (WARN at
+    once, named so), even with the rate itself under the limit; just under it, or noise_warn 0, stays OK."""
+    c = HealthConfig(noise_windows=0, warn_persist=1, rot_floor=1.0, rate_persist=2, rate_sigma=1.5, noise_warn=1.0)
+    r = _moving(rot=0.8, rot_se=1.1)
+    assert Health(c).assess(r).level == "WARN" and r.message.startswith("pose noise: rotation drift 0.8 ± 1.1 °/s")
+    assert Health(c).assess(_moving(rot=0.8, rot_se=0.9)).level == "OK"
+    assert Health(replace(c, noise_warn=0.0)).assess(_moving(rot=0.8, rot_se=1.1)).level == "OK"

@@ -17,7 +17,8 @@ limits (RateLimits) act from the first window; a rate at its ERROR limit alarms 
 ERROR (relative limits) once it was above WARN in ``rate_persist`` of the last ``persist_windows`` windows: a
 SLAM's everyday error pokes over a limit for a window, drift stays. Absolute limits act at once. With
 ``rate_sigma`` > 0 a rate is judged by its lower bound rate − rate_sigma × its standard error (the drift
-rate fit's jackknife over scans): a rate one scan's pose noise could make is no alarm.
+rate fit's jackknife over scans): a rate one scan's pose noise could make is no drift alarm. Pose noise itself
+(a standard error of at least ``noise_warn`` × the WARN limit: the poses scatter from scan to scan) is a WARN.
 They carry most detections; the sigma alarms catch inconsistency without a trend (pose noise, jumps).
 A scan placed off by more than the co-plane gates joins no co-plane group, so the robust rate fit never sees
 it: its ``agreement`` (the share of its plane inliers that another scan sees in the same place; cpv.py) below
@@ -154,6 +155,11 @@ class Health:
             elif high[-1]:
                 notes.append(f"watch: {meaning} {shown} {unit} above limit {warn:.3g} in {sum(high)} of "
                              f"{self.rates.persist} windows needed")
+            se = float(getattr(result, f"{rate}_se", float("nan")))
+            if c.noise_warn > 0 and warn > 0 and se >= c.noise_warn * warn:  # NaN never alarms
+                level = _worse(level, "WARN")
+                alarms.append(f"pose noise: {meaning} {shown} {unit}, its standard error {se / warn:.2g} × the limit "
+                              f"{warn:.3g} (the poses scatter from scan to scan)")
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):

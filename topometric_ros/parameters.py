@@ -64,6 +64,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "health.rot_floor": (0.0, 360.0), "health.rot_per_m": (0.0, 100.0), "health.rot_per_deg": (0.0, 10.0),
     "health.trans_floor": (0.0, 100.0), "health.trans_per_m": (0.0, 10.0), "health.error_factor": (1.0, 100.0),
     "health.rate_persist": (1, 1000), "health.rate_sigma": (0.0, 10.0),
+    "health.noise_warn": (0.0, 1000.0),
     "health.noise_windows": (0, 100_000), "health.noise_quantile": (0.0, 1.0), "health.noise_margin": (0.0, 100.0),
     "health.noise_max_factor": (1.0, 1000.0),
     "health.min_planes": (0, 1_000_000), "health.agreement_warn": (0.0, 1.0), "metrics.rate_gate_per_m": (0.0, 1.0),
