@@ -218,21 +218,21 @@ def _floats(text: str) -> tuple:
 
 
 def _grid_axis(text: str) -> tuple[str, tuple]:
-    """KEY=V1,V2 of --grid: a health setting (config.HealthConfig) and the values to sweep, in its type."""
-    import dataclasses
+    """KEY=V1,V2 of --grid: a numeric health setting and the values to sweep, each read and checked as --set
+    reads it (YAML, config.apply)."""
+    import yaml
 
-    from .config import HealthConfig
+    from .config import HealthConfig, apply
 
-    key, _, values = text.partition("=")
-    key = key.strip().removeprefix("health.")
-    fields = {f.name: f for f in dataclasses.fields(HealthConfig)}
-    if key not in fields or not values.strip():
+    key, eq, values = text.partition("=")
+    key, items = key.strip().removeprefix("health."), [v for v in values.split(",") if v.strip()]
+    default = getattr(HealthConfig(), key, None)
+    if not eq or not items or default is None:
         raise argparse.ArgumentTypeError(f"expected KEY=V1,V2 with KEY a health setting, got {text!r}")
-    kind = type(getattr(HealthConfig(), key))
-    if kind not in (int, float):
+    if isinstance(default, str):
         raise argparse.ArgumentTypeError(f"health.{key} is not numeric: it cannot be swept")
     try:
-        return key, tuple(kind(v) for v in values.split(",") if v.strip())
+        return key, tuple(getattr(apply(HealthConfig(), {key: yaml.safe_load(v)}), key) for v in items)
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
 

@@ -139,7 +139,7 @@ class Health:
         persistent = sum(self._high) >= c.warn_persist
         limits = self.rates.limits(result)
         for rate, (meaning, unit) in RATES.items():
-            value, shown = self.rates.judged(result, rate)
+            value, se, shown = self.rates.judged(result, rate)
             warn, error = warn_at[rate], error_at[rate] = limits[rate]
             high = self._rate_high[rate]
             high.append(bool(np.isfinite(value) and warn > 0 and value >= warn))
@@ -155,7 +155,6 @@ class Health:
             elif high[-1]:
                 notes.append(f"watch: {meaning} {shown} {unit} above limit {warn:.3g} in {sum(high)} of "
                              f"{self.rates.persist} windows needed")
-            se = float(getattr(result, f"{rate}_se", float("nan")))
             if c.noise_warn > 0 and warn > 0 and se >= c.noise_warn * warn:  # NaN never alarms
                 level = _worse(level, "WARN")
                 alarms.append(f"pose noise: {meaning} {shown} {unit}, its standard error {se / warn:.2g} × the limit "
@@ -285,15 +284,15 @@ class RateLimits:
         alarms: rate_persist for relative limits; absolute limits act at once."""
         return self.c.rate_persist if self.c.rate_limits == "relative" else 1
 
-    def judged(self, result: Any, rate: str) -> tuple[float, str]:
-        """(value the limits judge, how the message shows it) of one drift rate: the rate itself, or with
-        rate_sigma > 0 and a standard error (``<rate>_se``), its lower bound rate − rate_sigma × se (≥ 0),
-        shown as "rate ± se"."""
+    def judged(self, result: Any, rate: str) -> tuple[float, float, str]:
+        """(value the limits judge, the rate's standard error ``<rate>_se`` (NaN without one), how the message
+        shows the rate) of one drift rate: the rate itself, or with rate_sigma > 0 and a standard error, its
+        lower bound rate − rate_sigma × se (≥ 0), shown as "rate ± se"."""
         value = float(getattr(result, rate, float("nan")))
         se = float(getattr(result, f"{rate}_se", float("nan")))
         if self.c.rate_sigma <= 0 or not np.isfinite(se):
-            return value, f"{value:.3g}"
-        return max(value - self.c.rate_sigma * se, 0.0), f"{value:.3g} ± {se:.2g}"
+            return value, se, f"{value:.3g}"
+        return max(value - self.c.rate_sigma * se, 0.0), se, f"{value:.3g} ± {se:.2g}"
 
     @property
     def learning(self) -> bool:

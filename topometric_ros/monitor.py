@@ -543,16 +543,14 @@ class Monitor:
                 self._busy[stage] = True
                 self._cond.notify_all()
             try:
-                try:
-                    out = self._run_stage(stage, item)
-                except Exception as e:  # noqa: BLE001 - a dead stage thread would stall the feeder and every later scan
-                    self._error("scan_errors", f"scan {item[1]}: internal error: {type(e).__name__}: {e}")
-                    out = None
+                out = self._run_stage(stage, item)
                 if out is not None and not last:
                     with self._cond:
                         nxt = self._queues[stage + 1]
                         self._cond.wait_for(lambda: len(nxt) < STAGE_QUEUE)
                         nxt.append(out)
+            except Exception as e:  # noqa: BLE001 - a dead stage thread would stall the feeder and every later scan
+                self._error("scan_errors", f"scan {item[1]}: internal error: {type(e).__name__}: {e}")
             finally:
                 with self._cond:
                     self._busy[stage] = False

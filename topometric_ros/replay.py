@@ -396,8 +396,8 @@ def load_windows(path: str | Path) -> dict:
 
 LEVEL_COLOURS = {"WARN": "#f0a030", "ERROR": "#d03020"}
 BASELINE_COLOUR = "#7fa7d0"
+SE_COLOUR = "#7a7a7a"  # the drift rates' ± standard error band
 #: (record key, axis label with its unit) of each row of metrics.png
-SE_COLOUR = "#7a7a7a"
 PLOT_ROWS = [("pne", "PNE (nats)"), ("cpv", "CPV (m², log scale)"), ("rot_rate", "rotation drift (°/s)"),
              ("trans_rate", "translation drift (m/s)"),
              ("rpe_estimate", "RPE estimate\nmean ‖E−I‖_F per scan pair\n(Eq. 4: rad and m mixed)"),
