@@ -1,12 +1,17 @@
 """Drift rates of a window from its co-plane groups: how fast the poses drift, in deg/s and m/s.
 
 A pose error that grows during the window (SLAM drifting) moves each physical plane from scan to scan.
-With scan i's error in the WINDOW frame x -> R_i x + p_i, R_i ≈ I + [ω t_i]×, p_i ≈ v t_i (t_i in s since
-the window's first scan, whose pose defines the frame, so R_0 = I, p_0 = 0), a patch of plane with unit
-normal n and centroid m moves to first order as
+SLAM drifts where the sensor is: its heading error grows by ω about the moving sensor, its position error by v.
+With scan i's error in the WINDOW frame x -> R_i x + p_i (t_i in s since the window's first scan, whose pose
+defines the frame, so R_0 = I, p_0 = 0), R_i ≈ I + [ω t_i]× and p_i ≈ v t_i − ω × S_i, where S_i = ∫ s dt
+from the first scan to scan i of the sensor's window-frame position s (a heading error that grew while the
+sensor moved away from the origin moves the later positions sideways: at 10 m/s a 2 °/s drift shifts them
+0.16 m in a 1 s window, quadratic in time). A patch of plane with unit normal n and centroid m moves to first
+order as
     normal:  n_i ≈ n + t_i (ω × n)
-    offset along the group normal n̄:  −n̄·m_i ≈ d − (t_i − t̄) ω·(m_i × n̄) − t_i n̄·v,
-with n̄ the members' weighted mean normal (the plane's normal at their weighted mean time t̄).
+    offset along the group normal n̄:  −n̄·m_i ≈ d − (t_i − t̄) ω·(m_i × n̄) + ω·(S_i × n̄) − t_i n̄·v,
+with n̄ the members' weighted mean normal (the plane's normal at their weighted mean time t̄). So v is the
+translation drift itself, not the sideways shift a rotation drift makes at speed.
 Inside a co-plane group (cpv.CoPlaneGroup: one physical plane seen by several scans) both change linearly
 with time. One weighted least-squares fit of the six rates (ω rad/s, v m/s) over all groups, each group's
 own means removed, uses both: normals see ω, offsets see v and, through the lever arm m × n̄ of patches
@@ -21,8 +26,7 @@ one, and the rates' standard errors (a jackknife over the window's scans) say ho
 drift stays inside the co-plane gates across the window (cpv: ε in offset, the angle gate in normals).
 
 ``rpe_estimate`` turns the rates into the paper's RPE (Eq. 4) over consecutive scan pairs, for small errors:
-‖E − I‖_F² = ‖ΔR − I‖_F² + |Δp|² ≈ 2 (|ω| Δt)² + (|v| Δt)², with v the drift of the window origin (the
-first scan's sensor): a rotation drift about a sensor that has moved away from it shows a little v too.
+‖E − I‖_F² = ‖ΔR − I‖_F² + |Δp|² ≈ 2 (|ω| Δt)² + (|v| Δt)².
 """
 from __future__ import annotations
 
@@ -45,12 +49,14 @@ def _skew(n: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times):
+def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times, origins=None):
     """(rotation rate deg/s, translation rate m/s, their standard errors) of a window's co-plane groups.
 
     scans (M,) scan position of each plane, normals (M, 3) and means (M, 3, m) in the window frame, counts
-    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0). The standard
-    errors count each scan's planes as one sample (_scan_jackknife_covariance). NaNs when there is no group."""
+    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0), origins (K, 3) m
+    each scan's sensor position in the window frame (the SLAM poses; None: the sensor stood still). The
+    standard errors count each scan's planes as one sample (_scan_jackknife_covariance). NaNs when there is
+    no group."""
     if not groups:
         return float("nan"), float("nan"), float("nan"), float("nan")
     normals, means = np.asarray(normals, np.float64).reshape(-1, 3), np.asarray(means, np.float64).reshape(-1, 3)
@@ -64,7 +70,8 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     # arm of a patch at m then moves its offset along n̄ by −(t − t̄) ω·(m × n̄)
     t_mean = (onehot.T @ (w * t)) / (onehot.T @ w)
     design = np.zeros((len(members), 4, 6))  # rows: offset, normal x y z; columns: ω (3), v (3)
-    design[:, 0, :3] = -(t - t_mean[group])[:, None] * np.cross(m, n) / OFFSET_SCALE_FLOOR
+    swept = swept_positions(times, origins)[scans[members]]
+    design[:, 0, :3] = (np.cross(swept, n) - (t - t_mean[group])[:, None] * np.cross(m, n)) / OFFSET_SCALE_FLOOR
     design[:, 0, 3:] = -t[:, None] * n / OFFSET_SCALE_FLOOR
     design[:, 1:, :3] = -t[:, None, None] * np.stack([_skew(x) for x in n]) / NORMAL_SCALE_FLOOR
     obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
@@ -73,6 +80,21 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     rot, trans = float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:]))
     cov = _scan_jackknife_covariance(design, obs, onehot, keep, scans[members])
     return rot, trans, float(np.degrees(_norm_se(x[:3], cov[:3, :3]))), _norm_se(x[3:], cov[3:, 3:])
+
+
+def swept_positions(times, origins=None) -> np.ndarray:
+    """(K, 3) m·s: S_k = ∫ s dt from the first scan (in time) to scan k of the sensor's window-frame position s,
+    by the trapezoid rule over the scans in time order; zeros without ``origins`` (K, 3) m."""
+    times = np.asarray(times, np.float64)
+    if origins is None:
+        return np.zeros((len(times), 3))
+    origins = np.asarray(origins, np.float64).reshape(-1, 3)
+    order = np.argsort(times, kind="stable")
+    t, s = times[order], origins[order]
+    steps = 0.5 * (s[1:] + s[:-1]) * np.diff(t)[:, None]
+    out = np.zeros_like(origins)
+    out[order] = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+    return out
 
 
 def _scan_jackknife_covariance(design, obs, group, weight, scan) -> np.ndarray:
@@ -185,9 +207,11 @@ def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, flo
     gt, est (K, 4, 4) sensor poses of the window's scans at ``times`` (s); NaN, NaN for < 2 scans or no span.
 
     Each scan's error in the WINDOW frame (the first scan's), E_i = (est_0⁻¹ est_i)(gt_0⁻¹ gt_i)⁻¹, maps a
-    true point to where the estimate puts it; the rates are the least-squares slopes (with intercept, as the
-    estimator's per-group means) of E_i's rotation vector and translation against time, so per-scan jitter
-    averages out instead of deciding the rate as it would through the first and last scan alone."""
+    true point to where the estimate puts it: x -> R_i x + p_i. The rotation rate ω is the least-squares slope
+    (with intercept, as the estimator's per-group means) of R_i's rotation vector against time, the
+    translation rate that of p_i + ω × S_i (the drift model of the module docstring, S_i from the true sensor
+    positions), so per-scan jitter averages out instead of deciding the rate as it would through the first
+    and last scan alone."""
     from ..geometry import inverse, matrix_to_rotvec
 
     gt, est = np.asarray(gt, np.float64), np.asarray(est, np.float64)
@@ -196,5 +220,7 @@ def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, flo
         return float("nan"), float("nan")
     err = (inverse(est[0]) @ est) @ inverse(inverse(gt[0]) @ gt)
     tc = t - t.mean()
-    slope = tc @ np.concatenate([matrix_to_rotvec(err[:, :3, :3]), err[:, :3, 3]], axis=1) / (tc @ tc)
-    return float(np.degrees(np.linalg.norm(slope[:3]))), float(np.linalg.norm(slope[3:]))
+    omega = tc @ matrix_to_rotvec(err[:, :3, :3]) / (tc @ tc)
+    swept = swept_positions(t, (inverse(gt[0]) @ gt)[:, :3, 3])
+    v = tc @ (err[:, :3, 3] + np.cross(omega, swept)) / (tc @ tc)
+    return float(np.degrees(np.linalg.norm(omega))), float(np.linalg.norm(v))
