@@ -144,7 +144,7 @@ def test_true_drift_rates_read_a_window_frame_drift_exactly_and_average_out_jitt
     times = np.arange(10) * 0.1
     gt = _turning_track(times)
     omega, v = np.radians([0.6, -1.2, 2.0]), np.array([0.05, 0.12, -0.03])
-    swept = dr.swept_positions(times, (geometry.inverse(gt[0]) @ gt)[:, :3, 3])
+    swept = dr.swept_positions(times, geometry.relative_to_first(gt)[:, :3, 3])
     err = np.stack([geometry.make_pose(geometry.rotvec_to_matrix(omega * t), v * t - np.cross(omega, s))
                     for t, s in zip(times, swept)])
     est = gt[0] @ err @ geometry.inverse(gt[0]) @ gt  # est_0^-1 est_i = E_i gt_0^-1 gt_i
@@ -310,7 +310,7 @@ def _heading_drift_at_speed(speed=10.0, drift_deg_s=2.0, scans=10, rate=10.0, fi
     cls, scan_of, normals, means = map(np.asarray, (cls, scan_of, normals, means))
     counts = np.full(len(cls), 2000.0)
     scatters = (np.eye(3)[None] - np.einsum("mi,mj->mij", normals, normals) * (1 - 1e-6)) * 2000.0
-    origins = (geometry.inverse(est[0]) @ est)[:, :3, 3]
+    origins = geometry.relative_to_first(est)[:, :3, 3]
     return (cls, scan_of, normals, means, scatters, counts), times, origins, gt, est
 
 

@@ -212,15 +212,16 @@ def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, flo
     translation rate that of p_i + ω × S_i (the drift model of the module docstring, S_i from the true sensor
     positions), so per-scan jitter averages out instead of deciding the rate as it would through the first
     and last scan alone."""
-    from ..geometry import inverse, matrix_to_rotvec
+    from ..geometry import inverse, matrix_to_rotvec, relative_to_first
 
     gt, est = np.asarray(gt, np.float64), np.asarray(est, np.float64)
     t = np.asarray(times, np.float64)
     if len(t) < 2 or np.ptp(t) <= 0:
         return float("nan"), float("nan")
-    err = (inverse(est[0]) @ est) @ inverse(inverse(gt[0]) @ gt)
+    truth = relative_to_first(gt)
+    err = relative_to_first(est) @ inverse(truth)
     tc = t - t.mean()
     omega = tc @ matrix_to_rotvec(err[:, :3, :3]) / (tc @ tc)
-    swept = swept_positions(t, (inverse(gt[0]) @ gt)[:, :3, 3])
+    swept = swept_positions(t, truth[:, :3, 3])
     v = tc @ (err[:, :3, 3] + np.cross(omega, swept)) / (tc @ tc)
     return float(np.degrees(np.linalg.norm(omega))), float(np.linalg.norm(v))
