@@ -283,12 +283,12 @@ class PlaneScores:
 
 
 def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, float] | None = None,
-                  distance: float = 0.0, origins=None) -> PlaneScores:
+                  distance: float = 0.0, poses=None) -> PlaneScores:
     """PNE, CPV and the drift rates of window-frame planes (``times``: (K,) s of the window's scans) with the
     thresholds of config.metrics. ``distance`` (m, the path the window travelled) widens the rate fit's own
     offset gate by metrics.rate_gate_per_m per m, so that a drift larger than CPV's ε still forms groups.
-    ``origins`` (K, 3) m: the scans' sensor positions in the window frame (None: standing still), for the
-    rate fit's drift about the moving sensor (drift_rate.drift_rates)."""
+    ``poses`` (K, 4, 4): the scans' sensor poses in the window frame (None: standing still), for the rate
+    fit's body-frame drift model (drift_rate.drift_rates)."""
     m = config.metrics
     timer = _Timer(timings if timings is not None else {})
     with timer("pne"):
@@ -304,7 +304,7 @@ def plane_metrics(wp: WindowPlanes, times, config: Config, timings: dict[str, fl
         rate_groups = groups if widen <= 0 else cpv_mod.coplane_groups(
             wp.classes, wp.scans, wp.normals, wp.means, wp.scatters, wp.counts, m.cpv_angle_deg, m.cpv_epsilon + widen)
         rot, trans, rot_se, trans_se = drift_mod.drift_rates(rate_groups, wp.scans, wp.normals, wp.means, wp.counts,
-                                                             times, origins)
+                                                             times, poses)
     return PlaneScores(pne, cpv, rot, trans, len(clusters), len(groups), agreement, worst, rot_se, trans_se)
 
 
@@ -322,7 +322,7 @@ def score_window(scans: Sequence[ProcessedScan], config: Config) -> WindowResult
         wp = window_planes(scans, poses)
     stamps = [s.stamp for s in scans]
     speed, turn_rate = window_motion(poses, stamps)
-    ps = plane_metrics(wp, stamps, config, timings, distance=speed * (stamps[-1] - stamps[0]), origins=poses[:, :3, 3])
+    ps = plane_metrics(wp, stamps, config, timings, distance=speed * (stamps[-1] - stamps[0]), poses=poses)
     result = WindowResult(stamps=stamps, pne=ps.pne, cpv=ps.cpv, n_planes=len(wp.counts), n_groups=ps.n_groups,
                           n_clusters=ps.n_clusters, rot_rate=ps.rot_rate, trans_rate=ps.trans_rate,
                           rot_rate_se=ps.rot_rate_se, trans_rate_se=ps.trans_rate_se,

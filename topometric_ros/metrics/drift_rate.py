@@ -1,29 +1,35 @@
 """Drift rates of a window from its co-plane groups: how fast the poses drift, in deg/s and m/s.
 
 A pose error that grows during the window (SLAM drifting) moves each physical plane from scan to scan.
-SLAM drifts where the sensor is: its heading error grows by ω about the moving sensor, its position error by v.
-With scan i's error in the WINDOW frame x -> R_i x + p_i (t_i in s since the window's first scan, whose pose
-defines the frame, so R_0 = I, p_0 = 0), R_i ≈ I + [ω t_i]× and p_i ≈ v t_i − ω × S_i, where S_i = ∫ s dt
-from the first scan to scan i of the sensor's window-frame position s (a heading error that grew while the
-sensor moved away from the origin moves the later positions sideways: at 10 m/s a 2 °/s drift shifts them
-0.16 m in a 1 s window, quadratic in time). A patch of plane with unit normal n and centroid m moves to first
-order as
-    normal:  n_i ≈ n + t_i (ω × n)
-    offset along the group normal n̄:  −n̄·m_i ≈ d − (t_i − t̄) ω·(m_i × n̄) + ω·(S_i × n̄) − t_i n̄·v,
-with n̄ the members' weighted mean normal (the plane's normal at their weighted mean time t̄). So v is the
-translation drift itself, not the sideways shift a rotation drift makes at speed.
-Inside a co-plane group (cpv.CoPlaneGroup: one physical plane seen by several scans) both change linearly
-with time. One weighted least-squares fit of the six rates (ω rad/s, v m/s) over all groups, each group's
-own means removed, uses both: normals see ω, offsets see v and, through the lever arm m × n̄ of patches
-away from the frame origin, ω too (without that term a rotation about the origin read as translation).
+SLAM drifts where the sensor is and as the sensor sees it: each odometry step adds a small error in the
+SENSOR frame, a rotation ω dt and a translation v dt (ω, v: the body-frame drift rates, what this module
+reports). With the sensor's window-frame pose (R(t), s(t)) from the SLAM poses (the first scan's pose defines
+the window frame), scan i's error in the WINDOW frame, x -> R_i x + p_i (R_0 = I, p_0 = 0), is to first order
+    R_i ≈ I + [A_i ω]×,   p_i ≈ A_i v + B_i ω,   A_i = ∫ R dt,   B_i = ∫ [s]× R dt
+from the first scan to scan i (drift_integrals). Standing still, A_i = t_i I and B_i = 0. Driving, B_i ω is
+the sideways shift a heading error makes where the sensor has gone (at 10 m/s a 2 °/s drift moves the later
+scans 0.16 m in a 1 s window, quadratic in time), and turning, A_i turns a body-frame drift with the sensor
+(a sideways drift of a car that turns 90° in the window is not a straight line in the window frame).
+A patch of plane with unit normal n and centroid m moves to first order as
+    normal:  n_i ≈ n + (A_i ω) × n
+    offset along the group normal n̄:  −n̄·m_i ≈ d − ω·(A_i − Ā)ᵀ(m_i × n̄) − ω·B_iᵀn̄ − v·A_iᵀn̄,
+with n̄ the members' weighted mean normal and Ā their weighted mean A (the plane as seen at their mean time).
+So v is the translation drift itself, not the sideways shift a rotation drift makes at speed.
+Inside a co-plane group (cpv.CoPlaneGroup: one physical plane seen by several scans) both change with time.
+One weighted least-squares fit of the six rates (ω rad/s, v m/s) over all groups, each group's own means
+removed, uses both: normals see ω, offsets see v and, through the lever arm m × n̄ of patches away from the
+frame origin, ω too (without that term a rotation about the origin read as translation).
 Rows are scaled by their noise floors (offsets 5 mm, normals 0.2°) and members weigh √(inlier count): many
 points make a precise plane, but a big floor must not hide every wall. Directions no group constrains (v
 along a direction no plane faces, ω about the only normal seen) stay zero (minimum-norm solution): the
-rates are the part of the drift planes can see.
+rates are the part of the drift planes can see. Which directions those are is judged with the sensor's
+rotation left out (A_i = t_i I): a rotation inside the window would otherwise lend such a direction a trace
+of a constraint (a direction turned by 1° is 2 % seen), which noise then fills.
 
 Constant pose errors (a window shifted as a whole) give no rate; pose noise without a trend gives a small
-one, and the rates' standard errors (a jackknife over the window's scans) say how small. The rates are in physical units, so their alarm limits do not depend on the site. Valid while the
-drift stays inside the co-plane gates across the window (cpv: ε in offset, the angle gate in normals).
+one, and the rates' standard errors (a jackknife over the window's scans) say how small. The rates are in
+physical units, so their alarm limits do not depend on the site. Valid while the drift stays inside the
+co-plane gates across the window (cpv: ε in offset, the angle gate in normals).
 
 ``rpe_estimate`` turns the rates into the paper's RPE (Eq. 4) over consecutive scan pairs, for small errors:
 ‖E − I‖_F² = ‖ΔR − I‖_F² + |Δp|² ≈ 2 (|ω| Δt)² + (|v| Δt)².
@@ -49,55 +55,78 @@ def _skew(n: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times, origins=None):
-    """(rotation rate deg/s, translation rate m/s, their standard errors) of a window's co-plane groups.
+def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times, poses=None):
+    """(rotation rate deg/s, translation rate m/s, their standard errors) of a window's co-plane groups: the
+    body-frame drift rates of the module docstring.
 
     scans (M,) scan position of each plane, normals (M, 3) and means (M, 3, m) in the window frame, counts
-    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0), origins (K, 3) m
-    each scan's sensor position in the window frame (the SLAM poses; None: the sensor stood still). The
-    standard errors count each scan's planes as one sample (_scan_jackknife_covariance). NaNs when there is
-    no group."""
+    (M,) inliers, times (K,) s of each scan position (any origin: the first scan is time 0), poses (K, 4, 4)
+    each scan's sensor pose in the window frame (the SLAM poses; None: the sensor stood still). The standard
+    errors count each scan's planes as one sample (_scan_jackknife_covariance). NaNs when there is no group."""
     if not groups:
         return float("nan"), float("nan"), float("nan"), float("nan")
     normals, means = np.asarray(normals, np.float64).reshape(-1, 3), np.asarray(means, np.float64).reshape(-1, 3)
     counts, times, scans = np.asarray(counts, np.float64), np.asarray(times, np.float64), np.asarray(scans)
     members = np.concatenate([g.members for g in groups])
     group = np.repeat(np.arange(len(groups)), [len(g.members) for g in groups])
-    t, w = times[scans[members]] - times.min(), np.sqrt(counts[members])
+    w = np.sqrt(counts[members])
     n = np.stack([_mean_direction(normals[g.members], np.sqrt(counts[g.members])) for g in groups])[group]
     m, onehot = means[members], np.eye(len(groups))[group]
-    # n̄ is the members' weighted mean normal, i.e. the plane's normal at their weighted mean time t̄: the lever
-    # arm of a patch at m then moves its offset along n̄ by −(t − t̄) ω·(m × n̄)
-    t_mean = (onehot.T @ (w * t)) / (onehot.T @ w)
-    design = np.zeros((len(members), 4, 6))  # rows: offset, normal x y z; columns: ω (3), v (3)
-    swept = swept_positions(times, origins)[scans[members]]
-    design[:, 0, :3] = (np.cross(swept, n) - (t - t_mean[group])[:, None] * np.cross(m, n)) / OFFSET_SCALE_FLOOR
-    design[:, 0, 3:] = -t[:, None] * n / OFFSET_SCALE_FLOOR
-    design[:, 1:, :3] = -t[:, None, None] * np.stack([_skew(x) for x in n]) / NORMAL_SCALE_FLOOR
+    design = _design(n, m, *drift_integrals(times, poses), scans[members], onehot, w)
+    # The directions the planes see are those of the same fit with the sensor's rotation left out (a drift that
+    # keeps its window-frame direction): a small rotation inside the window must not lend a direction no plane
+    # faces a trace of a constraint, which noise would then fill (a jackknife replicate read 2 m/s that way).
+    still = None if poses is None else np.asarray(poses, np.float64).reshape(-1, 4, 4).copy()
+    if still is not None:
+        still[:, :3, :3] = np.eye(3)
+    seen = _design(n, m, *drift_integrals(times, still), scans[members], onehot, w)
     obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
                           normals[members] / NORMAL_SCALE_FLOOR], axis=1)
-    x, keep = _robust_rate(design, obs, onehot, w)
+    x, keep = _robust_rate(design, obs, onehot, w, seen)
     rot, trans = float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:]))
-    cov = _scan_jackknife_covariance(design, obs, onehot, keep, scans[members])
+    cov = _scan_jackknife_covariance(design, obs, onehot, keep, scans[members], seen)
     return rot, trans, float(np.degrees(_norm_se(x[:3], cov[:3, :3]))), _norm_se(x[3:], cov[3:, 3:])
 
 
-def swept_positions(times, origins=None) -> np.ndarray:
-    """(K, 3) m·s: S_k = ∫ s dt from the first scan (in time) to scan k of the sensor's window-frame position s,
-    by the trapezoid rule over the scans in time order; zeros without ``origins`` (K, 3) m."""
+def _design(n, m, turned, swept, scan, group, w) -> np.ndarray:
+    """(M, 4, 6) design of the members (rows: offset, normal x y z in noise-floor units; columns: ω, v) for
+    group normals n (M, 3), patch centroids m (M, 3), the window's drift integrals A, B (K, 3, 3), each
+    member's ``scan`` (M,), one-hot ``group`` (M, G) and weights w (M,). n̄ is the plane's normal at the
+    members' weighted mean A (Ā): the lever arm of a patch at m moves its offset along n̄ by −ω·(A − Ā)ᵀ(m × n̄)."""
+    a, b = turned[scan], swept[scan]
+    a_mean = ((group.T @ (w[:, None] * a.reshape(-1, 9))) / (group.T @ w)[:, None]).reshape(-1, 3, 3)
+    a_mean = a_mean[group.argmax(axis=1)]
+    design = np.zeros((len(scan), 4, 6))
+    design[:, 0, :3] = -(np.einsum("kji,kj->ki", b, n) + np.einsum("kji,kj->ki", a - a_mean, np.cross(m, n)))
+    design[:, 0, 3:] = -np.einsum("kji,kj->ki", a, n)
+    design[:, 0] /= OFFSET_SCALE_FLOOR
+    design[:, 1:, :3] = -np.stack([_skew(x) for x in n]) @ a / NORMAL_SCALE_FLOOR
+    return design
+
+
+def drift_integrals(times, poses=None) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B), each (K, 3, 3): A_k = ∫ R dt (s) and B_k = ∫ [s]× R dt (m·s) from the first scan (in time) to scan
+    k of the sensor's window-frame rotation R and position s (``poses`` (K, 4, 4) in the window frame), by the
+    trapezoid rule over the scans in time order. Without poses the sensor stood still: A_k = t_k I, B_k = 0."""
     times = np.asarray(times, np.float64)
-    if origins is None:
-        return np.zeros((len(times), 3))
-    origins = np.asarray(origins, np.float64).reshape(-1, 3)
+    if poses is None:
+        poses = np.repeat(np.eye(4)[None], len(times), axis=0)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    rot = poses[:, :3, :3]
+    moment = np.stack([_skew(s) for s in poses[:, :3, 3]]) @ rot
     order = np.argsort(times, kind="stable")
-    t, s = times[order], origins[order]
-    steps = 0.5 * (s[1:] + s[:-1]) * np.diff(t)[:, None]
-    out = np.zeros_like(origins)
-    out[order] = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-    return out
+    dt = np.diff(times[order])[:, None, None]
+    out = []
+    for f in (rot, moment):
+        f = f[order]
+        steps = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(0.5 * (f[1:] + f[:-1]) * dt, axis=0)])
+        integral = np.empty_like(steps)
+        integral[order] = steps
+        out.append(integral)
+    return out[0], out[1]
 
 
-def _scan_jackknife_covariance(design, obs, group, weight, scan) -> np.ndarray:
+def _scan_jackknife_covariance(design, obs, group, weight, scan, seen) -> np.ndarray:
     """(P, P) jackknife covariance of the rates over scans, (K−1)/K Σ_s (x_s − x̄)(x_s − x̄)ᵀ, x_s the weighted fit
     again without scan s, with the robust fit's final ``weight`` (one solve per scan). A scan's own pose error
     moves every plane it sees, so its planes are one sample, not many; under per-scan pose noise this matches
@@ -106,7 +135,7 @@ def _scan_jackknife_covariance(design, obs, group, weight, scan) -> np.ndarray:
     p = design.shape[2]
     if len(used) < 3:
         return np.zeros((p, p))
-    xs = np.stack([_weighted_fit(design, obs, group, np.where(scan == s, 0.0, weight)) for s in used])
+    xs = np.stack([_weighted_fit(design, obs, group, np.where(scan == s, 0.0, weight), seen) for s in used])
     d = xs - xs.mean(axis=0)
     return d.T @ d * (len(used) - 1) / len(used)
 
@@ -126,19 +155,20 @@ def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray):
+def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray, seen: np.ndarray):
     """(rates x (P,), final weights (M,)) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust
     fit, so that one group joining two different surfaces (a step inside the group, not a trend) is rejected
     instead of bending the rates. design (M, R, P) and obs (M, R) in noise-floor units, group (M, G) one-hot
-    membership, weight (M,) prior weights.
+    membership, weight (M,) prior weights, ``seen`` (M, R, P) the design that decides which directions are
+    constrained (_weighted_fit).
 
     Iteratively reweighted least squares (Tukey's biweight on each member's residual norm) from two starts,
     x = 0 (no drift: a step group stands out and is dropped) and plain least squares (a real drift, which
     from x = 0 could look like outliers itself); the result that leaves the smaller Tukey loss at the noise
     floor (residual 1) wins, each judged with its own final weights."""
     best, best_keep, best_loss = np.zeros(design.shape[2]), weight, np.inf
-    for start in (np.zeros(design.shape[2]), _weighted_fit(design, obs, group, weight)):
-        x, keep = _irls(design, obs, group, weight, start)
+    for start in (np.zeros(design.shape[2]), _weighted_fit(design, obs, group, weight, seen)):
+        x, keep = _irls(design, obs, group, weight, start, seen)
         if best_loss < np.inf and np.allclose(x, best, rtol=0, atol=TOLERANCE):
             continue  # both starts led to the same rates
         loss = float(weight @ _tukey_loss(_residuals(design, obs, group, keep, x) / TUKEY_C))
@@ -147,14 +177,14 @@ def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight:
     return best, best_keep
 
 
-def _irls(design, obs, group, weight, x):
+def _irls(design, obs, group, weight, x, seen):
     """(rates, final weights) of Tukey-biweight IRLS from ``x``; robust scale max(1.4826 MAD, 1 floor unit)."""
     keep = weight
     for _ in range(ITERATIONS):
         res = _residuals(design, obs, group, keep, x)
         scale = max(1.4826 * float(np.median(res)), 1.0)
         keep = weight * (1.0 - np.clip(res / (TUKEY_C * scale), 0.0, 1.0) ** 2) ** 2
-        new_x = _weighted_fit(design, obs, group, keep)
+        new_x = _weighted_fit(design, obs, group, keep, seen)
         if np.allclose(new_x, x, rtol=0, atol=TOLERANCE):
             return new_x, keep
         x = new_x
@@ -172,13 +202,26 @@ def _residuals(design, obs, group, weight, x) -> np.ndarray:
     return np.linalg.norm(b - a @ x, axis=1)
 
 
-def _weighted_fit(design, obs, group, weight) -> np.ndarray:
-    """Weighted least-squares x with the per-group intercepts eliminated (minimum norm; zero without rows)."""
+def _weighted_fit(design, obs, group, weight, seen=None) -> np.ndarray:
+    """Weighted least-squares x with the per-group intercepts eliminated (zero without rows), inside the
+    directions that ``seen`` (a design like ``design``; None: design itself) constrains with these weights, and
+    of minimum norm there."""
     a, b = _centred(design, obs, group, weight)
     sw = np.sqrt(weight)[:, None, None]
     p = design.shape[2]
     rows, rhs = (a * sw).reshape(-1, p), (b * sw[..., 0]).reshape(-1)
-    return np.linalg.lstsq(rows, rhs, rcond=RCOND)[0] if np.any(rows) else np.zeros(p)
+    if not np.any(rows):
+        return np.zeros(p)
+    basis = _constrained(_centred(seen, obs, group, weight)[0] * sw if seen is not None else a * sw)
+    return basis @ np.linalg.lstsq(rows @ basis, rhs, rcond=RCOND)[0]
+
+
+def _constrained(rows: np.ndarray) -> np.ndarray:
+    """(P, r) orthonormal basis of the directions weighted design ``rows`` (..., P) constrains: right singular
+    vectors with singular values above RCOND × the largest (from the P × P Gram matrix: squared values)."""
+    rows = rows.reshape(-1, rows.shape[-1])
+    power, vectors = np.linalg.eigh(rows.T @ rows)
+    return vectors[:, power > RCOND ** 2 * power[-1]] if power[-1] > 0 else np.zeros((rows.shape[1], 0))
 
 
 def _centred(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray):
@@ -207,11 +250,10 @@ def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, flo
     gt, est (K, 4, 4) sensor poses of the window's scans at ``times`` (s); NaN, NaN for < 2 scans or no span.
 
     Each scan's error in the WINDOW frame (the first scan's), E_i = (est_0⁻¹ est_i)(gt_0⁻¹ gt_i)⁻¹, maps a
-    true point to where the estimate puts it: x -> R_i x + p_i. The rotation rate ω is the least-squares slope
-    (with intercept, as the estimator's per-group means) of R_i's rotation vector against time, the
-    translation rate that of p_i + ω × S_i (the drift model of the module docstring, S_i from the true sensor
-    positions), so per-scan jitter averages out instead of deciding the rate as it would through the first
-    and last scan alone."""
+    true point to where the estimate puts it: x -> R_i x + p_i. The body-frame rates of the module docstring's
+    model are least-squares fits (with an intercept, as the estimator's per-group means) of R_i's rotation
+    vector ≈ c + A_i ω, then of p_i − B_i ω ≈ c' + A_i v (A, B from the true poses: drift_integrals), so
+    per-scan jitter averages out instead of deciding the rate as it would through the first and last scan."""
     from ..geometry import inverse, matrix_to_rotvec, relative_to_first
 
     gt, est = np.asarray(gt, np.float64), np.asarray(est, np.float64)
@@ -220,8 +262,13 @@ def true_drift_rates(gt: np.ndarray, est: np.ndarray, times) -> tuple[float, flo
         return float("nan"), float("nan")
     truth = relative_to_first(gt)
     err = relative_to_first(est) @ inverse(truth)
-    tc = t - t.mean()
-    omega = tc @ matrix_to_rotvec(err[:, :3, :3]) / (tc @ tc)
-    swept = swept_positions(t, truth[:, :3, 3])
-    v = tc @ (err[:, :3, 3] + np.cross(omega, swept)) / (tc @ tc)
+    turned, swept = drift_integrals(t, truth)
+    omega = _slope(turned, matrix_to_rotvec(err[:, :3, :3]))
+    v = _slope(turned, err[:, :3, 3] - swept @ omega)
     return float(np.degrees(np.linalg.norm(omega))), float(np.linalg.norm(v))
+
+
+def _slope(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(3,) x of the least-squares fit y_k ≈ c + a_k x with a free intercept c; a (K, 3, 3), y (K, 3)."""
+    a_c, y_c = a - a.mean(axis=0), y - y.mean(axis=0)
+    return np.linalg.lstsq(a_c.reshape(-1, 3), y_c.reshape(-1), rcond=None)[0]
