@@ -23,7 +23,7 @@ Rows are scaled by their noise floors (offsets 5 mm, normals 0.2°) and members 
 points make a precise plane, but a big floor must not hide every wall. Directions no group constrains (v
 along a direction no plane faces, ω about the only normal seen) stay zero (minimum-norm solution): the
 rates are the part of the drift planes can see. Which directions those are is judged with the sensor's
-rotation left out (A_i = t_i I): a rotation inside the window would otherwise lend such a direction a trace
+rotation left out (A_i = t_i I, B_i = [S_i]× with S_i = ∫ s dt): a rotation inside the window would otherwise lend such a direction a trace
 of a constraint (a direction turned by 1° is 2 % seen), which noise then fills.
 
 Constant pose errors (a window shifted as a whole) give no rate; pose noise without a trend gives a small
@@ -76,10 +76,8 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     # The directions the planes see are those of the same fit with the sensor's rotation left out (a drift that
     # keeps its window-frame direction): a small rotation inside the window must not lend a direction no plane
     # faces a trace of a constraint, which noise would then fill (a jackknife replicate read 2 m/s that way).
-    still = None if poses is None else np.asarray(poses, np.float64).reshape(-1, 4, 4).copy()
-    if still is not None:
-        still[:, :3, :3] = np.eye(3)
-    seen = _design(n, m, *drift_integrals(times, still), scans[members], onehot, w)
+    seen = design if poses is None else _design(n, m, *drift_integrals(times, _unrotated(poses)), scans[members],
+                                                onehot, w)
     obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
                           normals[members] / NORMAL_SCALE_FLOOR], axis=1)
     x, keep = _robust_rate(design, obs, onehot, w, seen)
@@ -102,6 +100,13 @@ def _design(n, m, turned, swept, scan, group, w) -> np.ndarray:
     design[:, 0] /= OFFSET_SCALE_FLOOR
     design[:, 1:, :3] = -np.stack([_skew(x) for x in n]) @ a / NORMAL_SCALE_FLOOR
     return design
+
+
+def _unrotated(poses) -> np.ndarray:
+    """(K, 4, 4) copies of ``poses`` with the identity rotation: the sensor's path alone."""
+    out = np.asarray(poses, np.float64).reshape(-1, 4, 4).copy()
+    out[:, :3, :3] = np.eye(3)
+    return out
 
 
 def drift_integrals(times, poses=None) -> tuple[np.ndarray, np.ndarray]:
