@@ -129,11 +129,17 @@ def test_rpe_estimate_matches_the_rpe_of_poses_drifting_at_those_rates():
     assert got == pytest.approx(rpe(gt, est), rel=0.1)  # the small-error form leaves out the lever arm
 
 
-def _turning_track(times):
-    """Ground-truth sensor poses of a robot driving a 3 m/s arc turning 40 deg/s (map frame)."""
-    yaw = np.radians(40.0) * times
-    pos = np.stack([3.0 / np.radians(40.0) * np.sin(yaw), 3.0 / np.radians(40.0) * (1 - np.cos(yaw)), 1.0 + 0 * yaw], 1)
-    return np.stack([geometry.make_pose(geometry.rotvec_to_matrix([0, 0, a]), p) for a, p in zip(yaw, pos)])
+def _turning_track(times, speed=3.0, turn_deg_s=40.0):
+    """Ground-truth sensor poses (map frame, 1 m up) of a robot driving at ``speed`` m/s on an arc turning
+    ``turn_deg_s`` (0: straight ahead along x)."""
+    yaw = np.radians(turn_deg_s) * times
+    if turn_deg_s == 0:
+        ahead, aside = speed * times, 0.0 * times
+    else:
+        radius = speed / np.radians(turn_deg_s)
+        ahead, aside = radius * np.sin(yaw), radius * (1 - np.cos(yaw))
+    return np.stack([geometry.make_pose(geometry.rotvec_to_matrix([0, 0, a]), [x, y, 1.0])
+                     for a, x, y in zip(yaw, ahead, aside)])
 
 
 def test_true_drift_rates_read_a_body_frame_drift_exactly_and_average_out_jitter():
@@ -155,7 +161,7 @@ def test_true_drift_rates_read_a_body_frame_drift_exactly_and_average_out_jitter
     assert dr.true_drift_rates(gt, moved @ est, times) == pytest.approx((rot, trans), rel=1e-9)
     assert dr.true_drift_rates(gt, gt, times) == pytest.approx((0.0, 0.0), abs=1e-12)
 
-    straight = np.stack([geometry.make_pose(np.eye(3), [1.2 * t, 0.0, 1.0]) for t in times])
+    straight = _turning_track(times, speed=1.2, turn_deg_s=0.0)
     late = straight.copy()
     late[-1] = late[-1] @ geometry.make_pose(np.eye(3), [0.03, 0.0, 0.0])  # only the last pose 3 cm off
     tc = times - times.mean()
@@ -290,12 +296,7 @@ def _drift_on_track(speed=10.0, turn_deg_s=0.0, drift_deg_s=(0.0, 0.0, 2.0), dri
     rng = np.random.default_rng(3)
     dt = 1.0 / (rate * fine)
     steps = np.arange((scans - 1) * fine + 1) * dt
-    yaw = np.radians(turn_deg_s) * steps
-    radius = speed / np.radians(turn_deg_s) if turn_deg_s else np.inf
-    ahead = speed * steps if turn_deg_s == 0 else radius * np.sin(yaw)
-    aside = 0.0 * steps if turn_deg_s == 0 else radius * (1 - np.cos(yaw))
-    gt = np.stack([geometry.make_pose(geometry.rotvec_to_matrix([0, 0, a]), [x, y, 1.0])
-                   for a, x, y in zip(yaw, ahead, aside)])
+    gt = _turning_track(steps, speed, turn_deg_s)
     extra = geometry.make_pose(geometry.rotvec_to_matrix(np.radians(drift_deg_s) * dt), np.asarray(drift_m_s) * dt)
     est = [gt[0]]
     for k in range(1, len(steps)):

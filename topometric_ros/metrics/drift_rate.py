@@ -76,8 +76,8 @@ def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, t
     # The directions the planes see are those of the same fit with the sensor's rotation left out (a drift that
     # keeps its window-frame direction): a small rotation inside the window must not lend a direction no plane
     # faces a trace of a constraint, which noise would then fill (a jackknife replicate read 2 m/s that way).
-    seen = design if poses is None else _design(n, m, *drift_integrals(times, _unrotated(poses)), scans[members],
-                                                onehot, w)
+    seen = None if poses is None else _design(n, m, *drift_integrals(times, _unrotated(poses)), scans[members],
+                                              onehot, w)
     obs = np.concatenate([-np.einsum("ij,ij->i", m, n)[:, None] / OFFSET_SCALE_FLOOR,
                           normals[members] / NORMAL_SCALE_FLOOR], axis=1)
     x, keep = _robust_rate(design, obs, onehot, w, seen)
@@ -92,8 +92,7 @@ def _design(n, m, turned, swept, scan, group, w) -> np.ndarray:
     member's ``scan`` (M,), one-hot ``group`` (M, G) and weights w (M,). n̄ is the plane's normal at the
     members' weighted mean A (Ā): the lever arm of a patch at m moves its offset along n̄ by −ω·(A − Ā)ᵀ(m × n̄)."""
     a, b = turned[scan], swept[scan]
-    a_mean = ((group.T @ (w[:, None] * a.reshape(-1, 9))) / (group.T @ w)[:, None]).reshape(-1, 3, 3)
-    a_mean = a_mean[group.argmax(axis=1)]
+    a_mean = (group @ ((group.T @ (w[:, None] * a.reshape(-1, 9))) / (group.T @ w)[:, None])).reshape(-1, 3, 3)
     design = np.zeros((len(scan), 4, 6))
     design[:, 0, :3] = -(np.einsum("kji,kj->ki", b, n) + np.einsum("kji,kj->ki", a - a_mean, np.cross(m, n)))
     design[:, 0, 3:] = -np.einsum("kji,kj->ki", a, n)
@@ -131,7 +130,7 @@ def drift_integrals(times, poses=None) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def _scan_jackknife_covariance(design, obs, group, weight, scan, seen) -> np.ndarray:
+def _scan_jackknife_covariance(design, obs, group, weight, scan, seen=None) -> np.ndarray:
     """(P, P) jackknife covariance of the rates over scans, (K−1)/K Σ_s (x_s − x̄)(x_s − x̄)ᵀ, x_s the weighted fit
     again without scan s, with the robust fit's final ``weight`` (one solve per scan). A scan's own pose error
     moves every plane it sees, so its planes are one sample, not many; under per-scan pose noise this matches
@@ -160,12 +159,12 @@ def _mean_direction(normals: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray, seen: np.ndarray):
+def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight: np.ndarray, seen=None):
     """(rates x (P,), final weights (M,)) of obs_k ≈ c_group(k) + design_k x with per-group intercepts c: a robust
     fit, so that one group joining two different surfaces (a step inside the group, not a trend) is rejected
     instead of bending the rates. design (M, R, P) and obs (M, R) in noise-floor units, group (M, G) one-hot
     membership, weight (M,) prior weights, ``seen`` (M, R, P) the design that decides which directions are
-    constrained (_weighted_fit).
+    constrained (_weighted_fit; None: design itself).
 
     Iteratively reweighted least squares (Tukey's biweight on each member's residual norm) from two starts,
     x = 0 (no drift: a step group stands out and is dropped) and plain least squares (a real drift, which
@@ -182,7 +181,7 @@ def _robust_rate(design: np.ndarray, obs: np.ndarray, group: np.ndarray, weight:
     return best, best_keep
 
 
-def _irls(design, obs, group, weight, x, seen):
+def _irls(design, obs, group, weight, x, seen=None):
     """(rates, final weights) of Tukey-biweight IRLS from ``x``; robust scale max(1.4826 MAD, 1 floor unit)."""
     keep = weight
     for _ in range(ITERATIONS):
