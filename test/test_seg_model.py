@@ -17,7 +17,8 @@ from topometric_ros.segmentation.checkpoint import SegmentationError, load_weigh
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
-from topometric_ros.segmentation.train import TrainConfig, augment, class_weights, lovasz_softmax, model_card
+from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, family_chances, lovasz_softmax,
+                                               model_card, sample_crops)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -270,6 +271,24 @@ def test_class_weights_favour_rare_classes():
     labels = np.array([C.WALL] * 900 + [C.CHAIR] * 100 + [255] * 50, np.uint8)
     w = class_weights(labels)
     assert w[C.CHAIR] > w[C.WALL] > 0 and w[C.FLOOR] == 0
+
+
+def test_crops_give_every_sensor_family_an_equal_share_however_many_image_widths_it_has():
+    def group(sensors, width, fill):
+        n = len(sensors)
+        return {"images": np.full((n, 4, 8, width), fill, np.float16), "labels": np.zeros((n, 8, width), np.uint8),
+                "sensor": np.array(sensors)}
+
+    # the Mid-360 fills three widths; two Ouster models share one shape; a VLP-32C has its own
+    groups = [group(["Mid-360"] * 3, w, 1.0) for w in (576, 640, 704)]
+    groups += [group(["OS1-64", "OS0-32", "OS1-64"], 1024, 2.0), group(["VLP-32C"], 1800, 3.0)]
+    assert np.allclose(family_chances(groups), [1 / 9, 1 / 9, 1 / 9, 1 / 3, 1 / 3])
+    rng = np.random.default_rng(0)
+    drawn = [int(sample_crops(groups, 2, 480, rng)[0][0, 0, 0, 0]) for _ in range(3000)]
+    share = np.bincount(drawn, minlength=4)[1:] / len(drawn)
+    assert np.allclose(share, 1 / 3, atol=0.03), share  # by shape, the Mid-360 would take 3/5
+    x, y = sample_crops(groups[:1], 5, 480, rng)
+    assert x.shape == (5, 4, 8, 480) and y.shape == (5, 8, 480)
 
 
 def test_lovasz_is_zero_for_a_perfect_prediction_and_grows_with_errors():

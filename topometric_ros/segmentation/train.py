@@ -92,12 +92,22 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
     return torch.cat([rng, xyz, intensity * v, v], 1)
 
 
-def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator):
-    """n random azimuth crops (wrapping around) of random images of ONE image-shape group, the groups taking
-    turns at random with equal chances (a grid shape is a sensor family: the nine Ouster models share one, the
-    Mid-360 has its own; drawing by image count starved the small families): xyz+intensity (n, 4, rows, w)
-    float32 and labels; w = width or the group's own width when that is narrower."""
-    g = groups[int(rng.integers(len(groups)))]
+def family_chances(groups: Sequence[dict]) -> np.ndarray:
+    """(G,) chance of each image-shape group per batch: every sensor family (the set of sensors a group holds)
+    gets an equal share, split evenly over its groups. The nine Ouster models share one shape; a non-repetitive
+    scan's image width follows its point count, so the Mid-360 alone fills several groups and would otherwise
+    be drawn several times as often as a spinning sensor."""
+    families = [tuple(sorted(set(map(str, g["sensor"])))) for g in groups]
+    p = np.array([1.0 / families.count(f) for f in families])
+    return p / p.sum()
+
+
+def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator, chances: np.ndarray | None = None):
+    """n random azimuth crops (wrapping around) of random images of ONE image-shape group, drawn with
+    ``chances`` (default: :func:`family_chances`): xyz+intensity (n, 4, rows, w) float32 and labels;
+    w = width or the group's own width when that is narrower."""
+    p = family_chances(groups) if chances is None else chances
+    g = groups[int(rng.choice(len(groups), p=p))]
     images, labels = g["images"], g["labels"]
     w = min(width, images.shape[-1])
     idx = rng.integers(len(images), size=n)
@@ -234,6 +244,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     val = (load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress, workers=cfg.workers)
            if val_bags else None)
     groups = list(data.values())
+    chances = family_chances(groups)
     val_groups = list(val.values()) if val is not None else None
     weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
     if init:
@@ -272,7 +283,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step", disable=not progress,
                    leave=False)
         for _ in bar:
-            x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng)
+            x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng, chances)
             inp, y = augment(x.to(dev, non_blocking=True), y.to(dev, non_blocking=True), cfg, g)
             logits = model(inp)
             loss = F.cross_entropy(logits, y, weight=weights, ignore_index=255)
