@@ -279,10 +279,10 @@ def test_crops_give_every_sensor_family_an_equal_share_however_many_image_widths
         return {"images": np.full((n, 4, 8, width), fill, np.float16), "labels": np.zeros((n, 8, width), np.uint8),
                 "sensor": np.array(sensors)}
 
-    # the Mid-360 fills three widths; two Ouster models share one shape; a VLP-32C has its own
-    groups = [group(["Mid-360"] * 3, w, 1.0) for w in (576, 640, 704)]
+    # the Mid-360 fills three widths (one of them a single odd scan); two Ouster models share one shape
+    groups = [group(["Mid-360"] * n, w, 1.0) for n, w in ((6, 576), (1, 640), (1, 704))]
     groups += [group(["OS1-64", "OS0-32", "OS1-64"], 1024, 2.0), group(["VLP-32C"], 1800, 3.0)]
-    assert np.allclose(family_chances(groups), [1 / 9, 1 / 9, 1 / 9, 1 / 3, 1 / 3])
+    assert np.allclose(family_chances(groups), [6 / 24, 1 / 24, 1 / 24, 1 / 3, 1 / 3])
     rng = np.random.default_rng(0)
     drawn = [int(sample_crops(groups, 2, 480, rng)[0][0, 0, 0, 0]) for _ in range(3000)]
     share = np.bincount(drawn, minlength=4)[1:] / len(drawn)

@@ -94,11 +94,13 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
 
 def family_chances(groups: Sequence[dict]) -> np.ndarray:
     """(G,) chance of each image-shape group per batch: every sensor family (the set of sensors a group holds)
-    gets an equal share, split evenly over its groups. The nine Ouster models share one shape; a non-repetitive
-    scan's image width follows its point count, so the Mid-360 alone fills several groups and would otherwise
-    be drawn several times as often as a spinning sensor."""
+    gets an equal share, split over its groups by their image counts. The nine Ouster models share one shape;
+    a non-repetitive scan's image width follows its point count, so the Mid-360 fills several groups (some of
+    one odd-width scan) and would otherwise be drawn once per width."""
     families = [tuple(sorted(set(map(str, g["sensor"])))) for g in groups]
-    p = np.array([1.0 / families.count(f) for f in families])
+    images = np.array([len(g["images"]) for g in groups], float)
+    family_images = {f: images[[h == f for h in families]].sum() for f in set(families)}
+    p = np.array([n / family_images[f] for n, f in zip(images, families)])
     return p / p.sum()
 
 
