@@ -129,7 +129,7 @@ class HealthConfig:
     error_factor: float = 2.0  # ERROR at this multiple of a rate's WARN limit (relative limits)
     rate_persist: int = 2  # a drift rate between its WARN and ERROR limits alarms once it was above WARN in this many of the last persist_windows windows (1 = at once; relative limits only); at ERROR at once
     rate_sigma: float = 1.75  # a drift rate is judged by its lower bound rate − rate_sigma × its standard error (metrics/drift_rate.py: each scan's planes one sample), so that one scan's pose noise does not read as drift (0 = the rate itself)
-    noise_warn: float = 1.0  # a drift rate's standard error (the poses' scan-to-scan scatter) at least this x its WARN limit -> WARN "pose noise" at once (0 = off)
+    noise_warn: float = 1.5  # a drift rate's standard error (the poses' scan-to-scan scatter) at least this x its WARN limit -> WARN "pose noise" at once (0 = off)
     noise_windows: int = 15  # windows that learn the run's noise floor of the rates; meanwhile the floors are noise_max_factor x theirs
     noise_quantile: float = 0.75  # quantile of the learning windows' rates (above the motion share) the floor is learned from
     noise_margin: float = 1.0  # learned floor = this x that quantile
