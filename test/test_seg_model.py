@@ -17,8 +17,8 @@ from topometric_ros.segmentation.checkpoint import SegmentationError, load_weigh
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
-from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, family_chances, lovasz_softmax,
-                                               model_card, sample_crops)
+from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, family_chances, family_summary,
+                                               lovasz_softmax, model_card, sample_crops)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -289,6 +289,10 @@ def test_crops_give_every_sensor_family_an_equal_share_however_many_image_widths
     assert np.allclose(share, 1 / 3, atol=0.03), share  # by shape, the Mid-360 would take 3/5
     x, y = sample_crops(groups[:1], 5, 480, rng)
     assert x.shape == (5, 4, 8, 480) and y.shape == (5, 8, 480)
+    summary = family_summary(groups, family_chances(groups)).splitlines()
+    assert summary[0] == "training batches by sensor family (3):"
+    assert "33.3 %       8 images (8x576, 8x640, 8x704): Mid-360" in summary[1]
+    assert summary[2].endswith("(8x1024): OS0-32, OS1-64")
 
 
 def test_lovasz_is_zero_for_a_perfect_prediction_and_grows_with_errors():

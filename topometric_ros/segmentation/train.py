@@ -92,16 +92,34 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
     return torch.cat([rng, xyz, intensity * v, v], 1)
 
 
+def sensor_family(group: dict) -> tuple[str, ...]:
+    """A cache group's sensor family: the sorted names of the sensors its images come from."""
+    return tuple(sorted(set(map(str, group["sensor"]))))
+
+
 def family_chances(groups: Sequence[dict]) -> np.ndarray:
     """(G,) chance of each image-shape group per batch: every sensor family (the set of sensors a group holds)
     gets an equal share, split over its groups by their image counts. The nine Ouster models share one shape;
     a non-repetitive scan's image width follows its point count, so the Mid-360 fills several groups (some of
     one odd-width scan) and would otherwise be drawn once per width."""
-    families = [tuple(sorted(set(map(str, g["sensor"])))) for g in groups]
+    families = [sensor_family(g) for g in groups]
     images = np.array([len(g["images"]) for g in groups], float)
     family_images = {f: images[[h == f for h in families]].sum() for f in set(families)}
     p = np.array([n / family_images[f] for n, f in zip(images, families)])
     return p / p.sum()
+
+
+def family_summary(groups: Sequence[dict], chances: np.ndarray) -> str:
+    """One line per sensor family: its sensors, image shapes, image count and share of the batches."""
+    families: dict[tuple, list[int]] = {}
+    for i, g in enumerate(groups):
+        families.setdefault(sensor_family(g), []).append(i)
+    lines = [f"training batches by sensor family ({len(families)}):"]
+    for sensors, idx in families.items():
+        shapes = ", ".join("x".join(map(str, groups[i]["images"].shape[-2:])) for i in idx)
+        lines.append(f"  {100 * chances[idx].sum():5.1f} %  {sum(len(groups[i]['images']) for i in idx):6d} images "
+                     f"({shapes}): {', '.join(sensors)}")
+    return "\n".join(lines)
 
 
 def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator, chances: np.ndarray | None = None):
@@ -247,6 +265,8 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
            if val_bags else None)
     groups = list(data.values())
     chances = family_chances(groups)
+    if progress:
+        tqdm.write(family_summary(groups, chances))
     val_groups = list(val.values()) if val is not None else None
     weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
     if init:
