@@ -50,9 +50,11 @@ ITERATIONS = 8
 TOLERANCE = 1e-6  # rad/s or m/s: a change of the rates this small ends the iterations
 
 
-def _skew(n: np.ndarray) -> np.ndarray:
-    x, y, z = n
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) cross-product matrices [v]× of vectors v (..., 3): [v]× u = v × u."""
+    x, y, z = np.moveaxis(np.asarray(v, np.float64), -1, 0)
+    o = np.zeros_like(x)
+    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
 
 
 def drift_rates(groups: Sequence[CoPlaneGroup], scans, normals, means, counts, times, poses=None):
@@ -97,7 +99,7 @@ def _design(n, m, turned, swept, scan, group, w) -> np.ndarray:
     design[:, 0, :3] = -(np.einsum("kji,kj->ki", b, n) + np.einsum("kji,kj->ki", a - a_mean, np.cross(m, n)))
     design[:, 0, 3:] = -np.einsum("kji,kj->ki", a, n)
     design[:, 0] /= OFFSET_SCALE_FLOOR
-    design[:, 1:, :3] = -np.stack([_skew(x) for x in n]) @ a / NORMAL_SCALE_FLOOR
+    design[:, 1:, :3] = -_skew(n) @ a / NORMAL_SCALE_FLOOR
     return design
 
 
@@ -112,22 +114,19 @@ def drift_integrals(times, poses=None) -> tuple[np.ndarray, np.ndarray]:
     """(A, B), each (K, 3, 3): A_k = ∫ R dt (s) and B_k = ∫ [s]× R dt (m·s) from the first scan (in time) to scan
     k of the sensor's window-frame rotation R and position s (``poses`` (K, 4, 4) in the window frame), by the
     trapezoid rule over the scans in time order. Without poses the sensor stood still: A_k = t_k I, B_k = 0."""
+    from scipy.integrate import cumulative_trapezoid
+
     times = np.asarray(times, np.float64)
     if poses is None:
         poses = np.repeat(np.eye(4)[None], len(times), axis=0)
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     rot = poses[:, :3, :3]
-    moment = np.stack([_skew(s) for s in poses[:, :3, 3]]) @ rot
+    moment = _skew(poses[:, :3, 3]) @ rot
     order = np.argsort(times, kind="stable")
-    dt = np.diff(times[order])[:, None, None]
-    out = []
-    for f in (rot, moment):
-        f = f[order]
-        steps = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(0.5 * (f[1:] + f[:-1]) * dt, axis=0)])
-        integral = np.empty_like(steps)
-        integral[order] = steps
-        out.append(integral)
-    return out[0], out[1]
+    turned, swept = np.empty_like(rot), np.empty_like(rot)
+    for f, integral in ((rot, turned), (moment, swept)):
+        integral[order] = cumulative_trapezoid(f[order], times[order], axis=0, initial=0)
+    return turned, swept
 
 
 def _scan_jackknife_covariance(design, obs, group, weight, scan, seen=None) -> np.ndarray:
