@@ -359,7 +359,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
 
         segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
                                                              threads=args.threads, passes=args.passes,
-                                                             max_beams=args.max_beams))
+                                                             max_beams=args.max_beams, knn=args.knn))
     result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
     metrics = write_report(result, args.out, args.title)
     print(format_table(metrics["rows"]))
@@ -368,6 +368,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
         print(f"speed: {sp['scans_per_s']} scans/s (median {sp['median_ms']} ms/scan over {sp['scans']} scans, "
               f"{args.device}, {args.threads} thread(s), {args.passes} pass(es), "
               f"{'every beam' if not args.max_beams else f'at most {args.max_beams} beams'}, "
+              f"{f'{args.knn}-nearest-neighbour vote' if args.knn else 'no neighbour vote'}, "
               "projection + network + back-projection)")
     print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
     return 0
@@ -395,6 +396,8 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .config import SegmentationConfig
+
     p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -460,6 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="network passes per scan, averaged (segmentation.passes: 2 adds the mirror image, 3 also a shifted one)")
     e.add_argument("--max-beams", type=int, default=0,
                    help="most beams the network sees, the rest take their neighbours' labels (segmentation.max_beams; 0 = all)")
+    e.add_argument("--knn", type=int, default=SegmentationConfig().knn,
+                   help="k-nearest-neighbour vote after the network (segmentation.knn; 0 = off)")
     e.add_argument("--every", type=int, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")

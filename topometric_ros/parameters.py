@@ -49,7 +49,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "window.max_pose_gap_s": (0.001, 10.0), "window.queue_size": (1, 1000), "window.voxel_size": (0.0, 5.0),
     "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0), "sensor.rate_hz": (0.0, 100.0),
     "segmentation.threads": (1, 64), "segmentation.min_confidence": (0.0, 1.0), "segmentation.passes": (1, 3),
-    "segmentation.max_beams": (0, 256),
+    "segmentation.max_beams": (0, 256), "segmentation.knn": (0, 15), "segmentation.knn_distance": (0.0, 100.0),
     "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000),
     "health.stale_after_s": (0.1, 3600.0), "health.fail_after_s": (0.0, 3600.0), "health.clock_jump_s": (0.0, 3600.0),

@@ -25,6 +25,7 @@ from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
+from .knn import knn_vote
 
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
@@ -161,18 +162,23 @@ class Segmenter:
     one runs. ``passes`` (1-3) averages the network over views of each image (Labeller): more accurate,
     ``passes`` times the network's time. ``max_beams`` (> 0): a scan of more rows has only every k-th row
     segmented (projection.beam_stride), the rows between take the labels of their nearest neighbours in the
-    rows segmented (projection.nearest_strided): about 1/k of the network's time.
+    rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
+    then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
-                 backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0):
+                 backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
+                 knn_distance: float = 0.5):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
         if max_beams != int(max_beams) or max_beams < 0:
             raise SegmentationError(f"segmentation.max_beams must be a whole number >= 0, got {max_beams}")
+        if knn != int(knn) or knn < 0:
+            raise SegmentationError(f"segmentation.knn must be a whole number >= 0, got {knn}")
         self.threads = threads
         self.max_beams = int(max_beams)
+        self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         self.labeller = Labeller(self.model, passes).to(self.device).eval()
@@ -189,7 +195,7 @@ class Segmenter:
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
-                   cfg.max_beams)
+                   cfg.max_beams, cfg.knn, cfg.knn_distance)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -201,6 +207,7 @@ class Segmenter:
     def predict_batch(self, scans: Sequence[Scan]) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`predict` for each (points, grid, intensity) of ``scans``; scans whose images have the same
         shape run as one batch."""
+        scans = [(*checked(points, grid, intensity), intensity) for points, grid, intensity in scans]
         prepared = [self._project(points, grid, intensity) for points, grid, intensity in scans]
         out: list = [None] * len(prepared)
         shapes: dict[tuple, list[int]] = {}
@@ -214,14 +221,16 @@ class Segmenter:
                 _, proj, source = prepared[i]
                 stop = start + proj.images
                 out[i] = _spread(proj.unproject(labels[start:stop]), proj.unproject(conf[start:stop]), source)
+                if self.knn:
+                    out[i] = knn_vote(*scans[i][:2], *out[i], self.knn, self.knn_distance)
                 start = stop
         return out
 
     def _project(self, points: np.ndarray, grid, intensity: np.ndarray | None
                  ) -> tuple[np.ndarray, Projection, np.ndarray | None]:
-        """(images, projection, source) of one scan: with max_beams, only the rows the network sees are projected
-        and ``source`` (N,) says whose label each point takes (projection.nearest_strided), else None."""
-        points, grid = checked(points, grid, intensity)
+        """(images, projection, source) of one checked scan (projection.checked): with max_beams, only the rows the
+        network sees are projected and ``source`` (N,) says whose label each point takes
+        (projection.nearest_strided), else None."""
         stride = beam_stride(grid, self.max_beams)
         if stride == 1:
             return *project(points, grid, intensity), None

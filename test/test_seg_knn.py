@@ -1,0 +1,106 @@
+"""The k-nearest-neighbour vote after the network (segmentation/knn.py, config segmentation.knn)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from topometric_ros import classes as C
+from topometric_ros.config import SegmentationConfig
+from topometric_ros.grid import ScanGrid, as_grid
+from topometric_ros.segmentation.checkpoint import SegmentationError
+from topometric_ros.segmentation.infer import Segmenter
+from topometric_ros.segmentation.knn import knn_vote
+from topometric_ros.segmentation.metrics import confusion, miou
+from topometric_ros.sim.frames import simulated_frames
+
+
+def _wall(rows: int = 5, cols: int = 40, x: float = 5.0, step: float = 0.05):
+    """A flat wall x = ``x`` m seen as a rows × cols grid, one point per cell 5 cm apart (y along columns,
+    z up the rows), every point WALL at confidence 0.9."""
+    r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    points = np.stack([np.full(r.size, x), (c - cols / 2) * step, (r - rows / 2) * step], 1).astype(np.float32)
+    grid = ScanGrid(r.astype(np.int32), c.astype(np.int32), rows, cols, np.zeros(rows), "test")
+    return points, grid, np.full(r.size, C.WALL, np.uint8), np.full(r.size, 0.9, np.float32)
+
+
+def test_a_point_labelled_unlike_the_surface_around_it_takes_the_surface_label_and_its_voters_confidence():
+    points, grid, labels, conf = _wall(rows=1)
+    lone = 20
+    labels[lone], conf[lone] = C.CHAIR, 0.6
+    conf[lone - 1], conf[lone + 1] = 0.7, 0.8  # its two nearest neighbours (5 cm; the next are 10 cm away)
+    out, out_conf = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[lone] == C.WALL
+    assert out_conf[lone] == pytest.approx(0.75)  # the mean of the two that voted wall
+    assert np.array_equal(np.delete(out, lone), np.delete(labels, lone))
+    assert np.array_equal(np.delete(out_conf, lone), np.delete(conf, lone))
+
+
+def test_two_points_of_an_object_outvote_one_neighbour_and_a_tie_keeps_the_own_label():
+    points, grid, labels, conf = _wall(rows=1)
+    a = 20
+    labels[[a, a + 1]] = C.CHAIR  # a pair: each sees itself and the other (chair) and one wall point
+    out, _ = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[a] == out[a + 1] == C.CHAIR
+    labels[:] = C.WALL
+    labels[a], labels[a - 1], labels[a + 1] = C.CHAIR, C.DESK, C.PILLAR  # one vote each: the own label wins
+    out, _ = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[a] == C.CHAIR
+
+
+def test_neighbours_in_the_image_but_far_in_space_do_not_vote():
+    points, grid, labels, conf = _wall()
+    lone = 2 * 40 + 20
+    points[lone, 0] = 3.0  # 2 m in front of the wall in its own cell: an edge seen past
+    labels[lone] = C.CHAIR
+    out, _ = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[lone] == C.CHAIR
+    out, _ = knn_vote(points, grid, labels, conf, k=3, distance=2.5)  # let the wall vote: it wins
+    assert out[lone] == C.WALL
+
+
+def test_the_window_wraps_around_in_azimuth():
+    # one ring of 360 columns at 5 m (8.7 cm apart); columns 1 and 2 empty, so only 358 and 359 are near column 0
+    cols = np.array([0] + list(range(3, 360)))
+    az = np.radians(cols)
+    points = np.stack([5 * np.cos(az), 5 * np.sin(az), np.zeros(len(cols))], 1).astype(np.float32)
+    grid = ScanGrid(np.zeros(len(cols), np.int32), cols.astype(np.int32), 1, 360, np.zeros(1), "test")
+    labels = np.full(len(cols), C.WALL, np.uint8)
+    labels[0] = C.CHAIR
+    out, _ = knn_vote(points, grid, labels, np.ones(len(cols), np.float32), k=3, distance=0.5)
+    assert out[0] == C.WALL
+
+
+def test_k_zero_returns_the_input_and_a_uniform_scan_is_unchanged():
+    points, grid, labels, conf = _wall()
+    labels[7] = C.DESK
+    out, out_conf = knn_vote(points, grid, labels, conf, k=0, distance=0.5)
+    assert out is labels and out_conf is conf
+    labels[7] = C.WALL
+    out, out_conf = knn_vote(points, grid, labels, conf, k=5, distance=0.5)
+    assert np.array_equal(out, labels) and np.array_equal(out_conf, conf)
+
+
+def test_the_segmenter_votes_after_the_network_and_the_vote_does_not_lower_miou_on_simulated_scans():
+    plain = Segmenter.from_config(replace(SegmentationConfig(), knn=0))
+    voting = Segmenter.from_config(replace(SegmentationConfig(), knn=3))
+    frames, _ = simulated_frames("office2", 2, seed=4242)
+    before = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+    after = before.copy()
+    for f in frames:
+        labels, conf = plain.predict(f.points, f.ring, f.intensity)
+        voted, voted_conf = voting.predict(f.points, f.ring, f.intensity)
+        want, want_conf = knn_vote(np.asarray(f.points, np.float32), as_grid(np.asarray(f.points, np.float32), f.ring),
+                                   labels, conf, 3, SegmentationConfig().knn_distance)
+        assert np.array_equal(voted, want) and np.array_equal(voted_conf, want_conf)
+        assert 0 < np.count_nonzero(voted != labels) < 0.01 * len(labels)
+        before += confusion(f.labels, labels)
+        after += confusion(f.labels, voted)
+    assert miou(after) >= miou(before)
+
+
+def test_a_negative_or_fractional_k_is_refused():
+    with pytest.raises(SegmentationError, match="segmentation.knn"):
+        Segmenter.from_config(replace(SegmentationConfig(), knn=-1))
