@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from . import classes as C
@@ -218,14 +219,30 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, grid=None, config=None
 
 def _moments(pts: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(count (G,), sum (G, 3), Σ x xᵀ (G, 3, 3)) of float64 points per group id (0..G−1)."""
-    x = pts.T.astype(np.float64)  # (3, N): contiguous coordinate rows
-    count = np.bincount(group, minlength=n_groups).astype(np.float64)
-    s = np.stack([np.bincount(group, x[i], n_groups) for i in range(3)], 1)
-    outer = np.empty((n_groups, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            outer[:, i, j] = outer[:, j, i] = np.bincount(group, x[i] * x[j], n_groups)
+    count, s, outer = np.zeros(n_groups), np.zeros((n_groups, 3)), np.zeros((n_groups, 3, 3))
+    _add_moments(np.asarray(pts), np.asarray(group), count, s, outer)
     return count, s, outer
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_moments(pts, group, count, s, outer):
+    """Add each point's moments to its group's, in point order (as np.bincount sums: the same floats)."""
+    for i in range(len(group)):
+        g = group[i]
+        x, y, z = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(pts[i, 2])
+        count[g] += 1.0
+        s[g, 0] += x
+        s[g, 1] += y
+        s[g, 2] += z
+        outer[g, 0, 0] += x * x
+        outer[g, 0, 1] += x * y
+        outer[g, 0, 2] += x * z
+        outer[g, 1, 1] += y * y
+        outer[g, 1, 2] += y * z
+        outer[g, 2, 2] += z * z
+    outer[:, 1, 0] = outer[:, 0, 1]
+    outer[:, 2, 0] = outer[:, 0, 2]
+    outer[:, 2, 1] = outer[:, 1, 2]
 
 
 def _planes_of(count, s, outer):
