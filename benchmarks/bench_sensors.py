@@ -4,7 +4,8 @@ network segmentation (shipped weights, ONNX Runtime) and planes — everything a
 For every sensors.py model: a few motion-distorted sweeps of office1 written in the model's driver layout
 (sim/writer.driver_cloud), then per sweep the median wall time of each step and of the sum, and scans/s.
 ``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models). Sensors of more than
-FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``).
+FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``), and every
+sensor without the neighbour vote after the network (``segmentation.knn`` 0, keys ``*_ms_knn0``).
 """
 from __future__ import annotations
 
@@ -77,15 +78,17 @@ def main() -> None:
     single_core()
     config = Config()
     few = replace(config, segmentation=replace(config.segmentation, max_beams=FEW_BEAMS))
+    no_vote = replace(config, segmentation=replace(config.segmentation, knn=0))
     setups = {"": (config, default_segmenter(config.segmentation)),
-              f"_mb{FEW_BEAMS}": (few, default_segmenter(few.segmentation))}
+              f"_mb{FEW_BEAMS}": (few, default_segmenter(few.segmentation)),
+              "_knn0": (no_vote, default_segmenter(no_vote.segmentation))}
     names = [n for n in os.environ.get("TOPOMETRIC_BENCH_SENSORS", ",".join(SENSORS)).split(",") if n]
     results = {}
     for name in names:
         clouds, model = _clouds(name), sensor(name)
         results[name] = {"points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}
         for suffix, (cfg, segmenter) in setups.items():
-            if suffix and model.beams <= FEW_BEAMS:
+            if suffix.startswith("_mb") and model.beams <= FEW_BEAMS:
                 continue
             for msg, traj, lift in clouds[:1]:
                 _steps(msg, traj, lift, cfg, segmenter, model)  # warm-up: the ONNX export for this image shape

@@ -320,7 +320,8 @@ def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
     seg = Segmenter.from_config(cfg)
     labels, conf = segment_frame(f, cfg, seg)
     np.testing.assert_array_equal(labels, seg.predict(f.points, f.ring, f.intensity)[0])
-    strict, _ = segment_frame(f, SegmentationConfig(knn=0, weights=str(path), min_confidence=float(np.median(conf))), seg)
+    strict, _ = segment_frame(f, SegmentationConfig(knn=0, weights=str(path), min_confidence=float(np.median(conf))),
+                              seg)
     assert (strict == C.OTHER).sum() > (labels == C.OTHER).sum()
     with pytest.raises(SegmentationError, match="no label field"):
         segment_frame(type(f)(points=f.points, pose=f.pose, stamp=0.0), SegmentationConfig(mode="labels"))
