@@ -322,7 +322,6 @@ def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp
     assert _network_options(load_config(None)) == ""
     assert _network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64})) == \
         ", 3 passes, at most 64 beams through the network"
-    assert _network_options(load_config(None, {"segmentation.knn": 0})) == ", no neighbour vote"
     assert _network_options(load_config(None, {"segmentation.knn": 5})) == ", a 5-nearest-neighbour vote"
     assert _network_options(load_config(None, {"segmentation.mode": "labels", "segmentation.max_beams": 64})) == ""
 

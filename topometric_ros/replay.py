@@ -25,7 +25,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from . import bag, geometry, storage
-from .config import Config, SegmentationConfig, flatten
+from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
@@ -546,10 +546,9 @@ def _network_options(config: Config) -> str:
     seg = config.segmentation
     if seg.mode != "network":
         return ""
-    vote = "" if seg.knn == SegmentationConfig().knn else (
-        f", a {seg.knn}-nearest-neighbour vote" if seg.knn else ", no neighbour vote")
     return "".join([f", {seg.passes} passes" if seg.passes > 1 else "",
-                    f", at most {seg.max_beams} beams through the network" if seg.max_beams else "", vote])
+                    f", at most {seg.max_beams} beams through the network" if seg.max_beams else "",
+                    f", a {seg.knn}-nearest-neighbour vote" if seg.knn else ""])
 
 
 def _run_lines(s: dict) -> list[str]:
