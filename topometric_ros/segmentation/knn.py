@@ -4,7 +4,7 @@ IROS 2019, Algorithm 1) on the scan's grid (grid.ScanGrid).
 The network labels pixels of a range image, and at the edge of an object a pixel can take the label of the
 surface beside it in the image although the point lies metres behind it (a wall point seen past a chair's
 edge labelled chair). Here every point takes the majority label of the ``k`` points nearest to it in 3D among
-the cells of a ``rows`` × ``columns`` window of the grid around its own (azimuth wraps around), counting only
+the cells of a ``window`` (rows, columns) of the grid around its own (azimuth wraps around), counting only
 those within ``distance`` metres; its own label wins ties. Points are in the SENSOR frame, metres. One pass
 over the points in a compiled numba kernel (single thread, GIL released).
 """
