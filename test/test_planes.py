@@ -298,3 +298,46 @@ def test_plane_extent_of_a_square_does_not_depend_on_the_principal_axes():
         rot = Rotation.from_euler("zx", [yaw, 90], degrees=True).as_matrix()
         plane = fit_plane(_patch(rng, 1.5, 1.5, rot, np.array([0.0, 4.0, 0.0]), uneven=False), C.WALL)
         np.testing.assert_allclose(plane.box(np.eye(4))[2], [3.0, 3.0], atol=0.03)
+
+
+@pytest.mark.parametrize("m", [2, 4])
+def test_quadtree_levels_sum_the_moments_of_their_blocks(m):
+    """planes._pool: each coarse cell holds the sums over its m × m block of fine cells, and nothing else."""
+    from topometric_ros.planes import _pool
+
+    rng = np.random.default_rng(m)
+    count = rng.integers(0, 3, (2, 8, 16)).astype(np.float64)
+    s, outer = rng.normal(size=count.shape + (3,)), rng.normal(size=count.shape + (3, 3))
+    s[count == 0], outer[count == 0] = 0.0, 0.0  # an empty cell has no moments
+    lc, ls, lo = _pool(count, s, outer, m)
+    blocks = (2, 8 // m, m, 16 // m, m)
+    np.testing.assert_allclose(lc, count.reshape(blocks).sum((2, 4)))
+    np.testing.assert_allclose(ls, s.reshape(blocks + (3,)).sum((2, 4)))
+    np.testing.assert_allclose(lo, outer.reshape(blocks + (3, 3)).sum((2, 4)))
+    assert lc[1, 0, 0] == count[1, :m, :m].sum()
+
+
+def test_a_point_goes_to_its_own_tiles_plane_else_the_nearest_neighbouring_one():
+    """planes._nearest_candidate on a 1-class, 3 × 4 tile grid of horizontal planes z = h (normal +z, offset −h):
+    its own tile's plane when within the distance, else the nearest of the 8 neighbours' (columns wrap
+    around, rows do not), else none."""
+    from topometric_ros.planes import _nearest_candidate
+
+    heights = np.array([0.0, 0.03, 0.1, 1.0])
+    normal, offset = np.tile([0.0, 0.0, 1.0], (4, 1)), -heights
+    plane_grid = np.full((1, 3, 4), -1, np.int64)
+    plane_grid[0, 0, 0], plane_grid[0, 1, 1], plane_grid[0, 1, 3], plane_grid[0, 2, 2] = 0, 1, 2, 3
+    cases = [  # (tile row, tile column, z, expected plane)
+        (0, 0, 0.01, 0),  # own plane, within 0.05
+        (0, 0, 0.04, 0),  # own plane wins although plane 1 (a neighbour) is nearer
+        (1, 0, 0.03, 1),  # no own plane: neighbours 0 (0.03 away), 1 (0), 2 (0.07, across the wrap): 1
+        (1, 0, 0.08, 2),  # ... plane 2 (0.02 away, the column to the left wraps to column 3)
+        (0, 0, 0.2, -1),  # own plane too far, and so are all neighbours'
+        (1, 2, 0.98, 3),  # own tile empty: plane 3 diagonally below-right
+        (0, 2, 0.98, -1),  # plane 3 is two rows away
+        (2, 0, 0.02, 1),  # last row: no row below to look at, plane 1 above-right
+    ]
+    tr, tc, z, expected = (np.array(c) for c in zip(*cases))
+    p = np.column_stack([np.zeros_like(z), np.zeros_like(z), z]).astype(np.float32)
+    got = _nearest_candidate(p, np.zeros(len(p), np.int64), tr, tc, plane_grid, normal, offset, 0.05)
+    assert got.tolist() == expected.tolist()

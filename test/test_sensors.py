@@ -94,3 +94,28 @@ def test_a_time_field_in_any_unit_and_reference_becomes_seconds_after_the_stamp(
     msg = make_layout_cloud(arrays, fields, 20, STAMP, "lidar", types)
     scan = read_scan(msg)
     np.testing.assert_allclose(scan.time, t, atol=1e-6)  # float64 ns since the epoch hold 256 ns steps
+
+
+@pytest.mark.parametrize("ids_fall", [False, True])
+def test_a_beam_too_sparse_for_the_elevation_sample_still_orders_the_rows(ids_fall):
+    """Rows come from beam ids ordered by each id's median elevation, found on every grid.SAMPLE-th point; a
+    beam with 2 points that the sample misses makes the grid use every point: the order is still right (ids
+    falling with elevation, as Ouster's, are reversed), and that row's elevation is NaN (no sampled point)."""
+    from topometric_ros.grid import SAMPLE
+
+    beams, per_beam = 8, 50
+    el = np.radians(np.linspace(-15, 15, beams))
+    az = np.radians(np.arange(per_beam) * 7.0)
+    e, a = np.meshgrid(el, az, indexing="ij")
+    pts = (10 * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)).reshape(-1, 3)
+    row = np.repeat(np.arange(beams), per_beam)
+    rest, sparse = np.flatnonzero(row != 5), np.flatnonzero(row == 5)[:2]
+    order = np.concatenate([rest[:1], sparse, rest[1:]])  # beam 5 at positions 1 and 2: off the sample
+    pts, row = pts[order].astype(np.float32), row[order]
+    assert np.count_nonzero(row == 5) == 2 and not np.any(row[::SAMPLE] == 5)
+    grid = scan_grid(pts, beams - 1 - row if ids_fall else row)
+    assert np.array_equal(grid.row, row), grid.source
+    assert grid.source == ("ring field (top-down, reversed)" if ids_fall else "ring field")
+    expected = np.degrees(el)
+    expected[5] = np.nan
+    np.testing.assert_allclose(grid.elevation_deg, expected, atol=1e-4)

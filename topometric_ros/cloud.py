@@ -244,10 +244,12 @@ def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> 
     if len(raw) == 0:
         return None, ""
     v = raw.astype(np.float64)
-    t = next((v * scale - ref for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
-              if np.abs(v * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
-    if t is None:
+    ends = np.array([v.min(), v.max()])  # v * scale - ref is monotone in v: its largest |.| is at an end
+    unit = next(((scale, ref) for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
+                 if np.abs(ends * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
+    if unit is None:
         return None, f"time field {name!r} is neither a time relative to the header stamp nor near it; not used"
+    t = v * unit[0] - unit[1]
     span = float(np.ptp(t))
     if span == 0.0:
         return None, f"time field {name!r} is constant; times from the azimuth instead"

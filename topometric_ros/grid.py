@@ -86,14 +86,27 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
     < MAX_BEAMS; the Monitor drops points with bad ids), ``columns`` of an organised cloud (0 = unknown) and an
     optional sensors.SensorModel. See the module docstring for the order in which rows are found."""
     pts = np.asarray(points, np.float32).reshape(-1, 3)
-    el = elevation_deg(pts)
     if len(pts) == 0:
         return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
     non_repetitive = model is not None and model.pattern == "non_repetitive"
     az, azimuth = np.arctan2(pts[:, 1], pts[:, 0]), None  # azimuth: kept for a non-repetitive grid only
-    if beam is not None and not non_repetitive:
-        row, height, source = _rows_from_beams(np.asarray(beam).astype(np.int64), el, model)
-    elif model is not None and not non_repetitive:
+    if beam is not None and not non_repetitive:  # rows from the ids: elevations of a sample suffice
+        row, height, source, el_sample = _rows_from_beams(np.asarray(beam).astype(np.int64), pts, model)
+    else:
+        row, height, source, el, columns, azimuth = _rows_from_elevations(pts, model, non_repetitive, columns, az)
+        el_sample = el[::SAMPLE]
+    width = aligned(model.columns if model is not None
+                    else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
+    return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
+                    _row_elevations(row[::SAMPLE], el_sample, height), source, azimuth)
+
+
+def _rows_from_elevations(pts, model, non_repetitive: bool, columns: int, az: np.ndarray):
+    """Rows of a cloud without beam ids: (row, height, source, every point's elevation (deg), columns, azimuth
+    kept for the network's image or None), from the model's beam table, else the scan's elevation clusters, else
+    elevation bins (a non-repetitive pattern: its cells as wide as they are tall)."""
+    el, azimuth = elevation_deg(pts), None
+    if model is not None and not non_repetitive:
         row, height, source = _nearest(el, np.asarray(model.elevation_deg)), model.beams, f"{model.name} beam table"
     else:
         centres = None if non_repetitive else beam_centres(pts, el)
@@ -105,10 +118,7 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
             azimuth = az  # the network image's finer columns (image_columns)
         else:
             row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
-    width = aligned(model.columns if model is not None
-                    else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
-    return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
-                    _row_elevations(row, el, height), source, azimuth)
+    return row, height, source, el, columns, azimuth
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
@@ -126,22 +136,25 @@ def image_columns(points: int, rows: int) -> int:
     return min(max(1, -(-int(points) // max(rows * IMAGE_COLUMN_STEP, 1))) * IMAGE_COLUMN_STEP, MAX_COLUMNS)
 
 
-def _rows_from_beams(beam: np.ndarray, el: np.ndarray, model) -> tuple[np.ndarray, int, str]:
+def _rows_from_beams(beam: np.ndarray, pts: np.ndarray, model) -> tuple[np.ndarray, int, str, np.ndarray]:
     """Rows from the cloud's beam ids, bottom-up: kept as they are when the ids rise with elevation, reversed
-    when they fall (Ouster), else ranked by each id's median elevation."""
+    when they fall (Ouster), else ranked by each id's median elevation. Returns (row, height, source, the
+    elevations (deg) of every SAMPLE-th point)."""
     height = model.beams if model is not None else int(beam.max()) + 1
     sub = slice(None, None, SAMPLE)
     ids = unique_ids(beam)
     sampled = len(unique_ids(beam[sub])) == len(ids)  # a sparse cloud can hide a beam from the sample
-    med = _medians(beam[sub], el[sub], ids) if sampled else _medians(beam, el, ids)
+    el = elevation_deg(pts[sub] if sampled else pts)
+    med = _medians(beam[sub], el, ids) if sampled else _medians(beam, el, ids)
+    el = el if sampled else el[sub]
     steps = np.diff(med)
     if len(steps) == 0 or np.all(steps > 0):
-        return beam, height, "ring field"
+        return beam, height, "ring field", el
     if np.all(steps < 0):
-        return height - 1 - beam, height, "ring field (top-down, reversed)"
+        return height - 1 - beam, height, "ring field (top-down, reversed)", el
     rank = np.empty(height, np.int64)
     rank[ids[np.argsort(med, kind="stable")]] = np.arange(len(ids))
-    return rank[beam], len(ids), "ring field (ranked by elevation)"
+    return rank[beam], len(ids), "ring field (ranked by elevation)", el
 
 
 def unique_ids(ids: np.ndarray) -> np.ndarray:
@@ -222,10 +235,10 @@ def _estimate_width(points: np.ndarray, row: np.ndarray, height: int) -> int:
     return int(round(2 * np.pi / step)) if step > 0 else int(max(counts.max(), 1))
 
 
-def _row_elevations(row: np.ndarray, el: np.ndarray, height: int) -> np.ndarray:
-    """(height,) median elevation of each row's points (deg), NaN for empty rows."""
+def _row_elevations(row_sample: np.ndarray, el_sample: np.ndarray, height: int) -> np.ndarray:
+    """(height,) median elevation (deg) of each row, NaN for empty rows, from every SAMPLE-th point's row and
+    elevation."""
     out = np.full(height, np.nan)
-    sub = slice(None, None, SAMPLE)
-    present = unique_ids(row[sub])
-    out[present] = _medians(row[sub], el[sub], present)
+    present = unique_ids(row_sample)
+    out[present] = _medians(row_sample, el_sample, present)
     return out

@@ -7,7 +7,9 @@ a cached plane into its own frame without touching points again (see :meth:`Plan
 Detection (:func:`detect_planes`), per static class, two detectors (config.planes.detector):
 - ``ring`` (default): the organised scan (ring × azimuth grid). Moments of tiles of the grid, a quadtree
   that keeps the coarsest planar tile, region growing over neighbouring tiles that agree, merging of
-  coplanar segments; every point to the nearest plane of its own or a neighbouring tile. Vectorised numpy.
+  coplanar segments; every point to the nearest plane of its own or a neighbouring tile. Vectorised numpy,
+  with numba kernels where a loop over points or cells is faster (moments, the quadtree's block sums, the
+  nearest plane of each point, a plane's mean and scatter).
 - ``open3d``: ``PointCloud.detect_planar_patches`` (Araújo & Oliveira 2020, the paper's detector) on each
   class, points in each patch box, coplanar patches of one surface merged.
 Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
@@ -81,10 +83,9 @@ def _fit_plane(points: np.ndarray, cls: int, frame: int, max_sample: int) -> tup
     """(fit_plane's plane, the eigenvalues (3,) ascending of its scatter matrix)."""
     if len(points) < 3:
         raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
-    cols = np.ascontiguousarray(np.asarray(points).T, np.float64)  # (3, K): contiguous rows sum fast
-    mean = cols.mean(axis=1)
-    centred = cols - mean[:, None]
-    scatter = centred @ centred.T
+    xyz = np.asarray(points)
+    xyz = np.ascontiguousarray(xyz, xyz.dtype if xyz.dtype in (np.float32, np.float64) else np.float64)
+    mean, scatter = _mean_scatter(xyz)
     lam, vecs = np.linalg.eigh(scatter)
     normal = vecs[:, 0]
     offset = -float(normal @ mean)
@@ -92,10 +93,42 @@ def _fit_plane(points: np.ndarray, cls: int, frame: int, max_sample: int) -> tup
         normal, offset = -normal, -offset
     sample = points[::-(-len(points) // max_sample)]  # evenly spread over the inliers (scan order)
     basis = vecs[:, [2, 1]]  # in-plane principal axes
-    c2, half2 = min_area_rectangle((basis.T @ centred).T)
+    c2, half2 = min_area_rectangle(_in_plane(xyz, mean, basis))
     extent = np.vstack([mean + basis @ c2, (basis @ half2).T])
     plane = Plane(int(cls), normal, offset, len(points), mean, scatter, np.asarray(sample, np.float32), frame, extent)
     return plane, lam
+
+
+@numba.njit(cache=True, nogil=True)
+def _mean_scatter(points):
+    """(mean (3,), Σ (x − mean)(x − mean)ᵀ (3, 3)) of (K, 3) points, in float64, two passes."""
+    mean = np.zeros(3)
+    for i in range(len(points)):
+        for a in range(3):
+            mean[a] += points[i, a]
+    mean /= len(points)
+    scatter = np.zeros((3, 3))
+    for i in range(len(points)):
+        dx, dy, dz = points[i, 0] - mean[0], points[i, 1] - mean[1], points[i, 2] - mean[2]
+        scatter[0, 0] += dx * dx
+        scatter[0, 1] += dx * dy
+        scatter[0, 2] += dx * dz
+        scatter[1, 1] += dy * dy
+        scatter[1, 2] += dy * dz
+        scatter[2, 2] += dz * dz
+    scatter[1, 0], scatter[2, 0], scatter[2, 1] = scatter[0, 1], scatter[0, 2], scatter[1, 2]
+    return mean, scatter
+
+
+@numba.njit(cache=True, nogil=True)
+def _in_plane(points, mean, basis):
+    """(K, 2) coordinates of (K, 3) points about ``mean`` along the two columns of ``basis`` (3, 2), float64."""
+    out = np.empty((len(points), 2))
+    for i in range(len(points)):
+        dx, dy, dz = points[i, 0] - mean[0], points[i, 1] - mean[1], points[i, 2] - mean[2]
+        out[i, 0] = dx * basis[0, 0] + dy * basis[1, 0] + dz * basis[2, 0]
+        out[i, 1] = dx * basis[0, 1] + dy * basis[1, 1] + dz * basis[2, 1]
+    return out
 
 
 def min_area_rectangle(xy: np.ndarray, directions: int = 64) -> tuple[np.ndarray, np.ndarray]:
@@ -338,8 +371,7 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
             out.append(members)
             continue
         along = np.array([-n[1], n[0], 0.0]) / np.hypot(n[0], n[1])
-        q = pts.take(members, axis=0)
-        u, v = q @ along, q[:, 2]
+        u, v = _along_and_up(pts, members, along)
         floor = np.partition(v, len(v) // 100)[len(v) // 100]
         low = np.flatnonzero(v < floor + cfg.opening_band)
         low = low[np.argsort(u[low])]
@@ -372,6 +404,19 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
         else:
             out.append(members)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _along_and_up(pts, members, along):
+    """(u, v) of the points ``members`` of (N, 3) ``pts``: u = x · along (float64, m; ``along`` horizontal),
+    v = z (as stored)."""
+    u = np.empty(len(members))
+    v = np.empty(len(members), pts.dtype)
+    for k in range(len(members)):
+        i = members[k]
+        u[k] = np.float64(pts[i, 0]) * along[0] + np.float64(pts[i, 1]) * along[1]
+        v[k] = pts[i, 2]
+    return u, v
 
 
 def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
@@ -420,10 +465,11 @@ def _assign_ring(pts, lab, grid, cfg) -> np.ndarray:
     ci = _STATIC_INDEX[lab[static]]
     row, col = grid.row[static], grid.col[static]
     tile_rows, tile_cols = tile_size(grid, cfg)
-    tiles = _quadtree_tiles(p, ci, row // tile_rows, col // tile_cols, -(-grid.width // tile_cols), cfg)
+    tr, tc = row // tile_rows, col // tile_cols
+    tiles = _quadtree_tiles(p, ci, tr, tc, -(-grid.width // tile_cols), cfg)
     if tiles is None:
         return assign, np.zeros((0, 3)), np.zeros(0)
-    count, s, outer, normal, offset, mean, spread, tcls, grid, cell = tiles
+    count, s, outer, normal, offset, mean, spread, tcls, grid = tiles
     # grow segments over neighbouring tiles that agree and are near in space too (not just in the image:
     # a surface seen past an occluder or at a grazing angle can be far from its image neighbour)
     a, b = _neighbour_pairs(grid)
@@ -453,15 +499,15 @@ def _assign_ring(pts, lab, grid, cfg) -> np.ndarray:
     plane_of_tile = merged[seg]
     # each point: its own tile's plane if near enough, else the nearest plane of the 8 neighbouring tiles
     plane_grid = np.where(grid >= 0, plane_of_tile[np.maximum(grid, 0)], -1)
-    best = _nearest_candidate(p, cell, plane_grid, mnormal, moffset, cfg.inlier_distance)
+    best = _nearest_candidate(p, ci, tr, tc, plane_grid, mnormal, moffset, cfg.inlier_distance)
     assign[static] = best
     return assign, mnormal, moffset
 
 
 def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
     """Planar tiles chosen coarsest-first. Returns per tile (count, sum, Σxxᵀ, normal, offset, mean, RMS
-    extent, class index), the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar
-    tile) and each point's flat cell index in that grid; None when no tile is planar."""
+    extent, class index) and the (classes, rows, cols) grid of tile ids at the finest level (−1: no planar
+    tile); None when no tile is planar."""
     levels = max(int(cfg.tile_levels), 1)
     f = 2 ** (levels - 1)
     trows = -(-(int(tr.max()) + 1) // f) * f
@@ -475,10 +521,7 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
     chosen = []  # per level: (flat indices at that level, count, s, outer, normal, offset, mean)
     for k in range(levels - 1, -1, -1):
         m = 2 ** k
-        lshape = (ncls, trows // m, m, pcols // m, m)
-        lc = count.reshape(lshape).sum((2, 4))
-        ls = s.reshape(lshape + (3,)).sum((2, 4))
-        lo = outer.reshape(lshape + (3, 3)).sum((2, 4))
+        lc, ls, lo = _pool(count, s, outer, m) if m > 1 else (count, s, outer)
         cand = np.flatnonzero((lc >= cfg.tile_min_points).reshape(-1) & ~covered.reshape(-1))
         cc, cs, co = lc.reshape(-1)[cand], ls.reshape(-1, 3)[cand], lo.reshape(-1, 3, 3)[cand]
         nrm, off, mean, lam = _planes_of(cc, cs, co)
@@ -506,8 +549,29 @@ def _quadtree_tiles(p, ci, tr, tc, tcols, cfg):
     cat = [np.concatenate([c[j] for c in chosen]) for j in range(2, 9)]
     tcls = np.concatenate([idx // ((trows // 2 ** k) * (pcols // 2 ** k)) for k, idx, *_ in chosen])
     grid = grid[:, :, :tcols]  # drop padding so that azimuth wraps around
-    cell = (ci * trows + tr) * tcols + tc
-    return (*cat, tcls, grid, cell)
+    return (*cat, tcls, grid)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pool(count, s, outer, m):
+    """Moments of (classes, rows, cols) cells summed over blocks of m × m cells (rows and cols multiples of m),
+    each block's cells in row-major order: (count, sum (..., 3), Σ x xᵀ (..., 3, 3)) on the coarser grid."""
+    ncls, rows, cols = count.shape
+    lc = np.zeros((ncls, rows // m, cols // m))
+    ls = np.zeros((ncls, rows // m, cols // m, 3))
+    lo = np.zeros((ncls, rows // m, cols // m, 3, 3))
+    for c in range(ncls):
+        for r in range(rows):
+            for q in range(cols):
+                if count[c, r, q] == 0.0:
+                    continue
+                br, bq = r // m, q // m
+                lc[c, br, bq] += count[c, r, q]
+                for i in range(3):
+                    ls[c, br, bq, i] += s[c, r, q, i]
+                    for j in range(3):
+                        lo[c, br, bq, i, j] += outer[c, r, q, i, j]
+    return lc, ls, lo
 
 
 def _sum_moments(group, n, count, s, outer):
@@ -572,35 +636,40 @@ def _near_pairs(where: np.ndarray, gap: float) -> tuple[np.ndarray, np.ndarray]:
     return pairs[:, 0], pairs[:, 1]
 
 
-def _nearest_candidate(p, cell, plane_grid, normal, offset, max_dist) -> np.ndarray:
-    """Per point: its own tile's plane when within max_dist, else the nearest plane (of its class) among the
-    8 neighbouring cells' planes within max_dist, else −1."""
-    ncls, trows, tcols = plane_grid.shape
-    flat = plane_grid.reshape(-1)
-    nrm, off = normal.astype(np.float32), offset.astype(np.float32)
-    own = flat[cell]
-    d_own = np.abs(np.einsum("ij,ij->i", p, nrm.take(np.maximum(own, 0), axis=0)) + off[np.maximum(own, 0)])
-    best = np.where((own >= 0) & (d_own <= max_dist), own, -1)
-    rest = np.flatnonzero(best < 0)
-    if len(rest) == 0:
-        return best
-    q, c = p.take(rest, axis=0), cell[rest]
-    cls, r, col = c // (trows * tcols), (c // tcols) % trows, c % tcols
-    best_r = np.full(len(rest), -1, np.int64)
-    best_d = np.full(len(rest), np.float32(max_dist))
-    for dr in (-1, 0, 1):
-        rr = r + dr
-        inside = (rr >= 0) & (rr < trows)
-        for dc in (-1, 0, 1):
-            if dr == 0 and dc == 0:
+def _nearest_candidate(p, ci, tr, tc, plane_grid, normal, offset, max_dist) -> np.ndarray:
+    """Per point (class index ci, tile row tr, tile column tc in the (classes, rows, cols) ``plane_grid`` of plane
+    ids): its own tile's plane when within max_dist, else the nearest plane among the 8 neighbouring tiles'
+    planes of its class within max_dist (the last of equals, rows then columns −1..1), else −1."""
+    return _nearest_kernel(p, ci, tr, tc, plane_grid, normal.astype(np.float32), offset.astype(np.float32),
+                           np.float32(max_dist))
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_kernel(p, ci, tr, tc, plane_grid, nrm, off, max_dist):
+    """_nearest_candidate on float32 planes; point-to-plane distances in float32."""
+    trows, tcols = plane_grid.shape[1], plane_grid.shape[2]
+    best = np.full(len(p), -1, np.int64)
+    for i in range(len(p)):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        cls, r, col = ci[i], tr[i], tc[i]
+        own = plane_grid[cls, r, col]
+        if own >= 0 and abs(x * nrm[own, 0] + y * nrm[own, 1] + z * nrm[own, 2] + off[own]) <= max_dist:
+            best[i] = own
+            continue
+        best_d = max_dist
+        for dr in range(-1, 2):
+            rr = r + dr
+            if rr < 0 or rr >= trows:
                 continue
-            cand = np.where(inside, flat[(cls * trows + np.clip(rr, 0, trows - 1)) * tcols + (col + dc) % tcols], -1)
-            ci = np.maximum(cand, 0)
-            d = np.abs(np.einsum("ij,ij->i", q, nrm.take(ci, axis=0)) + off[ci])
-            take = (cand >= 0) & (d <= best_d)
-            best_r[take] = cand[take]
-            best_d[take] = d[take]
-    best[rest] = best_r
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                cand = plane_grid[cls, rr, (col + dc) % tcols]
+                if cand < 0:
+                    continue
+                d = abs(x * nrm[cand, 0] + y * nrm[cand, 1] + z * nrm[cand, 2] + off[cand])
+                if d <= best_d:
+                    best[i], best_d = cand, d
     return best
 
 
