@@ -5,7 +5,7 @@ For every sensors.py model: a few motion-distorted sweeps of office1 written in 
 (sim/writer.driver_cloud), then per sweep the median wall time of each step and of the sum, and scans/s.
 ``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models). Sensors of more than
 FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``), and every
-sensor with the neighbour vote after the network (``segmentation.knn`` 3, keys ``*_ms_knn3``).
+sensor without the neighbour vote after the network (``segmentation.knn`` 0, keys ``*_ms_knn0``).
 """
 from __future__ import annotations
 
@@ -78,10 +78,10 @@ def main() -> None:
     single_core()
     config = Config()
     few = replace(config, segmentation=replace(config.segmentation, max_beams=FEW_BEAMS))
-    vote = replace(config, segmentation=replace(config.segmentation, knn=3))
+    no_vote = replace(config, segmentation=replace(config.segmentation, knn=0))
     setups = {"": (config, default_segmenter(config.segmentation)),
               f"_mb{FEW_BEAMS}": (few, default_segmenter(few.segmentation)),
-              "_knn3": (vote, default_segmenter(vote.segmentation))}
+              "_knn0": (no_vote, default_segmenter(no_vote.segmentation))}
     names = [n for n in os.environ.get("TOPOMETRIC_BENCH_SENSORS", ",".join(SENSORS)).split(",") if n]
     results = {}
     for name in names:

@@ -318,9 +318,10 @@ def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp
     assert code == 0 and summary["scans_processed"] == 6 and summary["no_scans"] == "", out
     assert "segmentation   labels (the clouds' own label field)" in out and "sensor         VLP-32C, velodyne" in out
     assert "NO SCAN" not in out
-    # the network's non-default options are named beside the mode (none here: labels)
-    assert _network_options(load_config(None)) == ""
-    assert _network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64})) == \
+    # the network's options are named beside the mode (none here: labels); the default: one pass and the vote
+    assert _network_options(load_config(None)) == ", a 3-nearest-neighbour vote"
+    assert _network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64,
+                                               "segmentation.knn": 0})) == \
         ", 3 passes, at most 64 beams through the network"
     assert _network_options(load_config(None, {"segmentation.knn": 5})) == ", a 5-nearest-neighbour vote"
     assert _network_options(load_config(None, {"segmentation.mode": "labels", "segmentation.max_beams": 64})) == ""

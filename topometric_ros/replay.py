@@ -542,7 +542,8 @@ SEGMENTATION_TEXT = {"network": "network (the shipped weights unless segmentatio
 
 
 def _network_options(config: Config) -> str:
-    """The network's non-default options in words ("" for none, or when the network does not run)."""
+    """What runs around the network, in words: passes beyond one, a beam limit, the neighbour vote ("" for
+    none of them, or when the network does not run)."""
     seg = config.segmentation
     if seg.mode != "network":
         return ""
