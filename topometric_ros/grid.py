@@ -93,32 +93,24 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
     if beam is not None and not non_repetitive:  # rows from the ids: elevations of a sample suffice
         row, height, source, el_sample = _rows_from_beams(np.asarray(beam).astype(np.int64), pts, model)
     else:
-        row, height, source, el, columns, azimuth = _rows_from_elevations(pts, model, non_repetitive, columns, az)
+        el = elevation_deg(pts)
         el_sample = el[::SAMPLE]
+        if model is not None and not non_repetitive:
+            row, height, source = _nearest(el, np.asarray(model.elevation_deg)), model.beams, f"{model.name} beam table"
+        else:
+            centres = None if non_repetitive else beam_centres(pts, el)
+            if centres is None:
+                fov = model.fov_deg if non_repetitive else (float(el.min()), float(el.max()))
+                rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
+                row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
+                columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
+                azimuth = az  # the network image's finer columns (image_columns)
+            else:
+                row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
     width = aligned(model.columns if model is not None
                     else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
     return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
                     _row_elevations(row[::SAMPLE], el_sample, height), source, azimuth)
-
-
-def _rows_from_elevations(pts, model, non_repetitive: bool, columns: int, az: np.ndarray):
-    """Rows of a cloud without beam ids: (row, height, source, every point's elevation (deg), columns, azimuth
-    kept for the network's image or None), from the model's beam table, else the scan's elevation clusters, else
-    elevation bins (a non-repetitive pattern: its cells as wide as they are tall)."""
-    el, azimuth = elevation_deg(pts), None
-    if model is not None and not non_repetitive:
-        row, height, source = _nearest(el, np.asarray(model.elevation_deg)), model.beams, f"{model.name} beam table"
-    else:
-        centres = None if non_repetitive else beam_centres(pts, el)
-        if centres is None:
-            fov = model.fov_deg if non_repetitive else (float(el.min()), float(el.max()))
-            rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
-            row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
-            columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
-            azimuth = az  # the network image's finer columns (image_columns)
-        else:
-            row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
-    return row, height, source, el, columns, azimuth
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
@@ -144,8 +136,9 @@ def _rows_from_beams(beam: np.ndarray, pts: np.ndarray, model) -> tuple[np.ndarr
     sub = slice(None, None, SAMPLE)
     ids = unique_ids(beam)
     sampled = len(unique_ids(beam[sub])) == len(ids)  # a sparse cloud can hide a beam from the sample
-    el = elevation_deg(pts[sub] if sampled else pts)
-    med = _medians(beam[sub], el, ids) if sampled else _medians(beam, el, ids)
+    part = sub if sampled else slice(None)
+    el = elevation_deg(pts[part])
+    med = _medians(beam[part], el, ids)
     el = el if sampled else el[sub]
     steps = np.diff(med)
     if len(steps) == 0 or np.all(steps > 0):

@@ -83,8 +83,7 @@ def _fit_plane(points: np.ndarray, cls: int, frame: int, max_sample: int) -> tup
     """(fit_plane's plane, the eigenvalues (3,) ascending of its scatter matrix)."""
     if len(points) < 3:
         raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
-    xyz = np.asarray(points)
-    xyz = np.ascontiguousarray(xyz, xyz.dtype if xyz.dtype in (np.float32, np.float64) else np.float64)
+    xyz = np.ascontiguousarray(points, np.float64)
     mean, scatter = _mean_scatter(xyz)
     lam, vecs = np.linalg.eigh(scatter)
     normal = vecs[:, 0]
