@@ -5,7 +5,8 @@ For every sensors.py model: a few motion-distorted sweeps of office1 written in 
 (sim/writer.driver_cloud), then per sweep the median wall time of each step and of the sum, and scans/s.
 ``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models). Sensors of more than
 FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``), and every
-sensor without the neighbour vote after the network (``segmentation.knn`` 0, keys ``*_ms_knn0``).
+sensor with the float32 network (``segmentation.precision`` float32, keys ``*_ms_f32``; the default, auto, runs
+int8 on a CPU with VNNI: ``precision`` says which ran).
 """
 from __future__ import annotations
 
@@ -78,15 +79,16 @@ def main() -> None:
     single_core()
     config = Config()
     few = replace(config, segmentation=replace(config.segmentation, max_beams=FEW_BEAMS))
-    no_vote = replace(config, segmentation=replace(config.segmentation, knn=0))
+    f32 = replace(config, segmentation=replace(config.segmentation, precision="float32"))
     setups = {"": (config, default_segmenter(config.segmentation)),
               f"_mb{FEW_BEAMS}": (few, default_segmenter(few.segmentation)),
-              "_knn0": (no_vote, default_segmenter(no_vote.segmentation))}
+              "_f32": (f32, default_segmenter(f32.segmentation))}
     names = [n for n in os.environ.get("TOPOMETRIC_BENCH_SENSORS", ",".join(SENSORS)).split(",") if n]
     results = {}
     for name in names:
         clouds, model = _clouds(name), sensor(name)
-        results[name] = {"points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds]))}
+        results[name] = {"points": int(np.median([len(m.data) // m.point_step for m, _, _ in clouds])),
+                         "precision": setups[""][1].precision}
         for suffix, (cfg, segmenter) in setups.items():
             if suffix.startswith("_mb") and model.beams <= FEW_BEAMS:
                 continue

@@ -176,22 +176,27 @@ def test_choose_sigma_can_hold_every_group_to_the_target():
     assert choose_sigma(sweep, 0.5, margin_sigma=0.0, key="worst_group_false_warns_per_10min")["warn_sigma"] == 4.0
 
 
-def test_network_replays_are_keyed_by_the_weights_file_contents(tmp_path):
-    import hashlib
+def test_network_replays_are_keyed_by_the_network_files_contents(tmp_path):
+    """The weights and their int8 activation ranges: other bytes in either, another key (a cached replay
+    made with the old network is not reused)."""
     import shutil
 
-    from topometric_ros.experiments.alarms import _weights_digest
+    from topometric_ros.audit import network_digest
     from topometric_ros.segmentation.checkpoint import SHIPPED
+    from topometric_ros.segmentation.quantize import RANGES_NAME
 
-    assert _weights_digest(load_config(overrides={"segmentation.mode": "labels"})) is None
-    shipped = _weights_digest(load_config(overrides={"segmentation.mode": "network"}))
-    assert shipped == hashlib.sha256(SHIPPED.read_bytes()).hexdigest()
-    other = tmp_path / "rangenet.pt"
-    shutil.copy(SHIPPED, other)
-    with open(other, "ab") as f:
-        f.write(b"\0")  # other bytes, other key (a cached replay with the old weights is not reused)
-    assert _weights_digest(load_config(overrides={"segmentation.mode": "network",
-                                                  "segmentation.weights": str(other)})) != shipped
+    assert network_digest(load_config(overrides={"segmentation.mode": "labels"})) is None
+    shipped = network_digest(load_config(overrides={"segmentation.mode": "network"}))
+    for changed in ("rangenet.pt", RANGES_NAME):
+        folder = tmp_path / changed
+        folder.mkdir()
+        for name in ("rangenet.pt", RANGES_NAME):
+            shutil.copy(SHIPPED.parent / name, folder / name)
+        config = load_config(overrides={"segmentation.mode": "network", "segmentation.weights": str(folder / "rangenet.pt")})
+        assert network_digest(config) == shipped  # same bytes elsewhere: the same network
+        with open(folder / changed, "ab") as f:
+            f.write(b"\0")
+        assert network_digest(config) != shipped
 
 
 def test_an_alarm_where_the_slam_truly_drifted_is_confirmed_not_false():

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 
-from topometric_ros.audit import BagTask, audit_bag, bag_digest, config_digest, file_sha256, weights_file
+from topometric_ros.audit import BagTask, audit_bag, bag_digest, config_digest, network_digest, weights_files
 from topometric_ros.config import load_config
 from topometric_ros.engine import run_tasks
 from topometric_ros.replay import ReplayOptions, replay
@@ -38,8 +38,9 @@ def test_local_and_ray_give_the_same_results_and_name_each_failure(short_bag, tm
 
 def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped_network(short_bag, tmp_path):
     config = load_config(overrides={"segmentation.mode": "network"})
-    weights = weights_file(config).read_bytes()
-    key = {"bag": bag_digest(short_bag), "config": config_digest(config), "weights": file_sha256(weights_file(config))}
+    weights = {name: path.read_bytes() for name, path in weights_files(config).items()}
+    assert set(weights) == {"weights", "int8"}  # the int8 activation ranges travel with the weights
+    key = {"bag": bag_digest(short_bag), "config": config_digest(config), "weights": network_digest(config)}
     task = BagTask(str(short_bag), short_bag.name, config, key)
     ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
                                       shared={"weights": weights})
@@ -53,7 +54,7 @@ def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped
     assert shipped["summary"]["config"]["segmentation.weights"].endswith(f"{key['weights']}/rangenet.pt")
     # other bytes under the same digest: the worker refuses them, the task fails with the reason
     ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
-                                      shared={"weights": weights[:-1] + bytes([weights[-1] ^ 1])})
+                                      shared={"weights": {**weights, "int8": weights["int8"] + b" "}})
     assert result is None and "do not hash to" in error
     # in-process: the file itself, its digest checked
     bad = replace(task, key={**key, "weights": "0" * 64})

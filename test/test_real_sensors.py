@@ -53,3 +53,18 @@ def test_the_bag_with_poses_gives_its_window_and_loses_no_scan(tmp_path):
     assert res.windows[0]["n_planes"] > 100
     # KISS-ICP's poses of real scans line up (0.93 of the worst scan's plane inliers): no pose jump
     assert res.windows[0]["agreement"] > 0.8 and "pose jump" not in res.windows[0]["message"]
+
+
+def test_inspect_says_how_the_network_ran(tmp_path, capsys):
+    """The console names the mode and the network's precision (int8 on a CPU with VNNI, else float32)."""
+    from topometric_ros.cli import main
+    from topometric_ros.segmentation.quantize import cpu_has_vnni
+
+    path = ROOT / "os1_32_g_legacy"
+    assert main(["inspect", str(path), "--out", str(tmp_path / "auto"), "--no-plot"]) == 0
+    want = "int8" if cpu_has_vnni() else "float32"
+    assert f"segmentation network, {want} inference, a 3-nearest-neighbour vote; sensor read off each cloud" \
+        in capsys.readouterr().out
+    assert main(["inspect", str(path), "--out", str(tmp_path / "f32"), "--no-plot",
+                 "--set", "segmentation.precision=float32"]) == 0
+    assert "segmentation network, float32 inference," in capsys.readouterr().out

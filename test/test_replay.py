@@ -16,7 +16,7 @@ from topometric_ros.bag import BagError
 from topometric_ros.config import load_config
 from topometric_ros.pipeline import ProcessedScan, WindowResult
 from topometric_ros.metrics.rpe import rpe as relative_pose_error
-from topometric_ros.replay import ReplayOptions, _network_options, replay
+from topometric_ros.replay import ReplayOptions, network_options, replay
 
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
@@ -319,12 +319,13 @@ def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp
     assert "segmentation   labels (the clouds' own label field)" in out and "sensor         VLP-32C, velodyne" in out
     assert "NO SCAN" not in out
     # the network's options are named beside the mode (none here: labels); the default: one pass and the vote
-    assert _network_options(load_config(None)) == ", a 3-nearest-neighbour vote"
-    assert _network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64,
+    assert network_options(load_config(None)) == ", a 3-nearest-neighbour vote"
+    assert network_options(load_config(None, {"segmentation.passes": 3, "segmentation.max_beams": 64,
                                                "segmentation.knn": 0})) == \
         ", 3 passes, at most 64 beams through the network"
-    assert _network_options(load_config(None, {"segmentation.knn": 5})) == ", a 5-nearest-neighbour vote"
-    assert _network_options(load_config(None, {"segmentation.mode": "labels", "segmentation.max_beams": 64})) == ""
+    assert network_options(load_config(None, {"segmentation.knn": 5})) == ", a 5-nearest-neighbour vote"
+    assert network_options(load_config(None), "int8") == ", int8 inference, a 3-nearest-neighbour vote"
+    assert network_options(load_config(None, {"segmentation.mode": "labels", "segmentation.max_beams": 64})) == ""
 
 
 def test_replay_with_the_real_pipeline_on_ground_truth_labels(office_bag, tmp_path):

@@ -8,14 +8,15 @@ half-written and workers need no write access to OUT.
 
 Cache: a bag's manifest holds its key, (bag digest: sha256 over the bag's files' names and bytes; config
 digest: sha256 of the resolved config as canonical JSON, segmentation.weights and window.pipelined left out;
-weights digest: sha256 of the weights file when the network segments; the replay options). A bag whose key
+weights digest: sha256 of the weights file and its int8 ranges when the network segments; the replay options). A bag whose key
 is unchanged is not run again; a bag whose task failed (an exception, a worker that died) has no key and is
 run again by the next audit. A bag that replays but processes nothing or breaks off (``summary['error']``
 / ``summary['no_scans']``, exit 1 of ``topometric replay``) is a failed bag with that reason, and is cached
 like any other result (the same bytes fail the same way; ``--force`` runs everything again).
 
-Weights: with Ray the weights file's bytes are put in the object store once and every task checks their
-sha256 against the digest of the key before using them (a copy in the worker's temp folder, named by digest).
+Weights: with Ray the bytes of the weights file (and its int8 ranges) are put in the object store once and
+every task checks their sha256 against the digest of the key before using them (a copy in the worker's temp
+folder, named by digest).
 
 Report: OUT/fleet.csv, OUT/fleet.json (strict JSON) and OUT/index.html (one self-contained page, a table
 sortable by clicking its headers, linking each bag's metrics.png; failed bags listed with their reason).
@@ -122,13 +123,31 @@ def config_digest(config: Config) -> str:
     return hashlib.sha256(json.dumps(flat, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def weights_file(config: Config) -> Path | None:
-    """The segmentation weights a replay with ``config`` loads (None without the network)."""
+def weights_files(config: Config) -> dict[str, Path]:
+    """The files of the network a replay with ``config`` loads: {"weights": the weights, "int8": their int8
+    activation ranges beside them when there} ({} without the network)."""
     if config.segmentation.mode != "network":
-        return None
+        return {}
     from .segmentation.checkpoint import SHIPPED
+    from .segmentation.quantize import ranges_path
 
-    return Path(config.segmentation.weights) if config.segmentation.weights else SHIPPED
+    weights = Path(config.segmentation.weights) if config.segmentation.weights else SHIPPED
+    ranges = ranges_path(weights)
+    return {"weights": weights, **({"int8": ranges} if ranges.is_file() else {})}
+
+
+def weights_digest(files: dict[str, bytes]) -> str | None:
+    """sha256 over the network's files (weights_files' names and bytes), None for none."""
+    if not files:
+        return None
+    h = hashlib.sha256()
+    for name in sorted(files):
+        h.update(f"{name}|{len(files[name])}|".encode() + files[name])
+    return h.hexdigest()
+
+
+def _read(files: dict[str, Path]) -> dict[str, bytes]:
+    return {name: path.read_bytes() for name, path in files.items()}
 
 
 def file_sha256(path: Path) -> str:
@@ -147,20 +166,22 @@ class BagTask:
     options: dict = field(default_factory=dict)  # replay.ReplayOptions fields (topics)
 
 
-def audit_bag(task: BagTask, weights: bytes | None = None) -> dict:
+def audit_bag(task: BagTask, weights: dict[str, bytes] | None = None) -> dict:
     """Replay one bag as ``topometric replay`` does; returns {'row': fleet row, 'files': {name: bytes}}.
-    ``weights``: the segmentation weights' bytes shipped by the engine (checked against the key's digest)."""
+    ``weights``: the network's files (weights_files' names, bytes) shipped by the engine (checked against
+    the key's digest)."""
     from .replay import ReplayOptions, replay
 
     config = task.config
     want = task.key.get("weights")
     if want:
         if weights is not None:
-            if hashlib.sha256(weights).hexdigest() != want:
+            if weights_digest(weights) != want:
                 raise ValueError(f"the weights shipped to this worker do not hash to {want[:12]}…")
             config = replace(config, segmentation=replace(config.segmentation, weights=str(_weights_copy(weights, want))))
-        elif file_sha256(weights_file(config)) != want:
-            raise ValueError(f"{weights_file(config)} changed since the audit started (sha256 is not {want[:12]}…)")
+        elif weights_digest(_read(weights_files(config))) != want:
+            raise ValueError(f"{weights_files(config)['weights']} or its int8 ranges changed since the audit "
+                             f"started (sha256 is not {want[:12]}…)")
     # one bag per CPU: the bag's per-scan stages run one after the other (window.pipelined gives the same
     # windows, in two threads; here the parallelism is across bags)
     config = replace(config, window=replace(config.window, pipelined=False))
@@ -171,15 +192,20 @@ def audit_bag(task: BagTask, weights: bytes | None = None) -> dict:
     return {"row": fleet_row(task, res.windows, res.summary), "files": files}
 
 
-def _weights_copy(data: bytes, digest: str) -> Path:
-    """The shipped weights as a file in this machine's temp folder, named by their digest (written once)."""
-    path = Path(tempfile.gettempdir()) / "topometric-weights" / digest / "rangenet.pt"
-    if not path.is_file() or file_sha256(path) != digest:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_bytes(data)
-        tmp.replace(path)
-    return path
+def _weights_copy(files: dict[str, bytes], digest: str) -> Path:
+    """The shipped network's files in this machine's temp folder, in a folder named by their digest (written
+    once); returns the weights' path."""
+    from .segmentation.quantize import RANGES_NAME
+
+    folder = Path(tempfile.gettempdir()) / "topometric-weights" / digest
+    paths = {"weights": folder / "rangenet.pt", "int8": folder / RANGES_NAME}
+    if weights_digest({n: paths[n].read_bytes() for n in files if paths[n].is_file()}) != digest:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, data in files.items():
+            tmp = paths[name].with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_bytes(data)
+            tmp.replace(paths[name])
+    return paths["weights"]
 
 
 def _quantile(values: list[float], q: float) -> float | None:
@@ -253,15 +279,15 @@ class AuditResult:
     summary: dict
 
 
-def _weights_digest(config: Config) -> str | None:
-    wfile = weights_file(config)
-    return file_sha256(wfile) if wfile else None
+def network_digest(config: Config) -> str | None:
+    """weights_digest of the network files a replay with ``config`` loads (None without the network)."""
+    return weights_digest(_read(weights_files(config)))
 
 
 def plan(bags: list[Path], out: Path, config: Config, options: dict | None = None,
          force: bool = False) -> tuple[list[BagTask], list[dict]]:
     """(tasks to run, rows of cached bags): a bag whose manifest holds the same key is cached."""
-    common = {"config": config_digest(config), "weights": _weights_digest(config),
+    common = {"config": config_digest(config), "weights": network_digest(config),
               "options": dict(sorted((options or {}).items())), "format": AUDIT_FORMAT}
     tasks, cached = [], []
     for path, name in zip(bags, bag_names(bags)):
@@ -315,7 +341,7 @@ def audit(bags: list[str | Path], out: str | Path, config: Config | None = None,
     tasks, cached = plan(paths, out, config, options, force)
     shared = {}
     if engine == "ray" and tasks and tasks[0].key.get("weights"):
-        shared["weights"] = weights_file(config).read_bytes()  # to the object store once; checked by digest
+        shared["weights"] = _read(weights_files(config))  # to the object store once; checked by digest
     rows = {r["bag"]: r for r in cached}
     for task, result, error in eng.run_tasks(audit_bag, tasks, engine=engine, workers=workers, address=address,
                                              desc="audit", progress=progress, shared=shared):
@@ -326,7 +352,7 @@ def audit(bags: list[str | Path], out: str | Path, config: Config | None = None,
                "failed": sum(1 for r in ordered if r["status"] == "failed"),
                "engine": engine, "workers": workers if engine == "ray" and not address else None,
                "address": address or None, "wall_s": round(time.perf_counter() - started, 3),
-               "config_digest": config_digest(config), "weights_digest": _weights_digest(config),
+               "config_digest": config_digest(config), "weights_digest": network_digest(config),
                "segmentation": config.segmentation.mode, "window_size": config.window.size,
                "created": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     write_report(out, ordered, summary, config)

@@ -146,11 +146,15 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     from .inspect import inspect_bag
+    from .replay import load_segmenter, network_options
 
     config = _monitor_config(args)
-    rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, plot=not args.no_plot)
+    segmenter = load_segmenter(config) if config.segmentation.mode == "network" else None
+    rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, segmenter,
+                       plot=not args.no_plot)
     cols = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
-    print(f"segmentation {config.segmentation.mode}; sensor {config.sensor.model or 'read off each cloud'}")
+    print(f"segmentation {config.segmentation.mode}{network_options(config, getattr(segmenter, 'precision', ''))}; "
+          f"sensor {config.sensor.model or 'read off each cloud'}")
     print("  ".join(f"{c:>10s}" for c in cols))
     for r in rows:
         print("  ".join(f"{str(r.get(c, '')):>10s}" for c in cols) + (f"  ERROR {r['error']}" if "error" in r else ""))
@@ -347,6 +351,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_quantize(args: argparse.Namespace) -> int:
+    import shlex
+
+    from .segmentation.checkpoint import SHIPPED
+    from .segmentation.data import expand_bags
+    from .segmentation.quantize import make_ranges
+
+    bags = expand_bags(args.bags)
+    command = "topometric quantize " + shlex.join(map(str, args.bags)) + f" --every {args.every}"
+    path = make_ranges(bags, args.weights or SHIPPED, args.every, command)
+    print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
+    return 0
+
+
 def cmd_eval_seg(args: argparse.Namespace) -> int:
     from .config import SegmentationConfig
     from .segmentation.data import expand_bags
@@ -359,7 +377,8 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
 
         segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
                                                              threads=args.threads, passes=args.passes,
-                                                             max_beams=args.max_beams, knn=args.knn))
+                                                             max_beams=args.max_beams, knn=args.knn,
+                                                             precision=args.precision))
     result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
     metrics = write_report(result, args.out, args.title)
     print(format_table(metrics["rows"]))
@@ -369,7 +388,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
               f"{args.device}, {args.threads} thread(s), {args.passes} pass(es), "
               f"{'every beam' if not args.max_beams else f'at most {args.max_beams} beams'}, "
               f"{f'{args.knn}-nearest-neighbour vote' if args.knn else 'no neighbour vote'}, "
-              "projection + network + back-projection)")
+              f"{segmenter.precision if segmenter else 'no'} network, projection + network + back-projection)")
     print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
     return 0
 
@@ -465,11 +484,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most beams the network sees, the rest take their neighbours' labels (segmentation.max_beams; 0 = all)")
     e.add_argument("--knn", type=int, default=SegmentationConfig().knn,
                    help="k-nearest-neighbour vote after the network (segmentation.knn; 0 = off)")
+    e.add_argument("--precision", default=SegmentationConfig().precision, choices=("auto", "int8", "float32"),
+                   help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
     e.add_argument("--every", type=int, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")
     e.add_argument("--out", default="out/eval_seg", help="output folder")
     e.set_defaults(func=cmd_eval_seg)
+
+    q = sub.add_parser("quantize", help="calibrate the int8 network: activation ranges saved beside the weights")
+    q.add_argument("bags", nargs="+", help="labelled or unlabelled bags of any sensors, or folders of bags "
+                                           "(e.g. data/any_val/*/test; never the evaluation bags)")
+    q.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
+    q.add_argument("--every", type=int, default=2, help="use every n-th scan of each bag")
+    q.set_defaults(func=cmd_quantize)
 
     r = sub.add_parser("replay",
                        help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")

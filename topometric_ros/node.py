@@ -116,11 +116,9 @@ class MonitorNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         self.updater = diagnostic_updater.Updater(self)  # declares diagnostic_updater.period / use_fqn
         p = self._declare_parameters()
-        segmenter = None
-        if self.config.segmentation.mode == "network":
-            from .replay import load_segmenter
+        from .replay import load_segmenter, network_options
 
-            segmenter = load_segmenter(self.config)
+        segmenter = load_segmenter(self.config) if self.config.segmentation.mode == "network" else None
         from .segmentation import infer  # noqa: F401 - import torch now, not when the first scan arrives (~1 s)
         self.p = p
         self._lock = threading.Lock()
@@ -145,7 +143,8 @@ class MonitorNode(Node):
         self.create_timer(CHECK_PERIOD_S, self._on_check)
         self.get_logger().info(
             f"monitoring {self.resolve_topic_name(p['points_topic'])} + {self.resolve_topic_name(p['odom_topic'])}: "
-            f"window {self.config.window.size} scans, segmentation {self.config.segmentation.mode}, "
+            f"window {self.config.window.size} scans, segmentation {self.config.segmentation.mode}"
+            f"{network_options(self.config, getattr(segmenter, 'precision', ''))}, "
             f"diagnostics on /diagnostics as '{self.updater.node_name}: {TASK}'")
 
     # ------------------------------------------------------------ parameters

@@ -192,7 +192,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                  monitor.extrinsic if to_sensor is None else to_sensor)
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
-                   segmentation=config.segmentation.mode, segmentation_options=_network_options(config),
+                   segmentation=config.segmentation.mode,
+                   segmentation_options=network_options(config, getattr(segmenter, "precision", "")),
                    sensor=config.sensor.model or "read off each cloud",
                    layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
     summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
@@ -541,13 +542,14 @@ SEGMENTATION_TEXT = {"network": "network (the shipped weights unless segmentatio
                      "labels": "labels (the clouds' own label field)", "none": "none (every point counts as static)"}
 
 
-def _network_options(config: Config) -> str:
-    """What runs around the network, in words: passes beyond one, a beam limit, the neighbour vote ("" for
-    none of them, or when the network does not run)."""
+def network_options(config: Config, precision: str = "") -> str:
+    """How the network runs, in words: its precision (the Segmenter's: int8 or float32), passes beyond one,
+    a beam limit, the neighbour vote ("" for none of them, or when the network does not run)."""
     seg = config.segmentation
     if seg.mode != "network":
         return ""
-    return "".join([f", {seg.passes} passes" if seg.passes > 1 else "",
+    return "".join([f", {precision} inference" if precision else "",
+                    f", {seg.passes} passes" if seg.passes > 1 else "",
                     f", at most {seg.max_beams} beams through the network" if seg.max_beams else "",
                     f", a {seg.knn}-nearest-neighbour vote" if seg.knn else ""])
 

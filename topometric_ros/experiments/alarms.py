@@ -29,6 +29,7 @@ from ..health import RATES, Health, assessment_fields
 from ..replay import RECORD_FORMAT, ReplayOptions, load_windows, replay
 from ..reports import write_json
 from ..sim.drift import DriftSpec
+from ..audit import network_digest
 from ..bag import load_truth
 from ..sim.writer import SIM_VERSION, SimConfig, bag_identity, simulate
 
@@ -195,7 +196,7 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
     if saved.exists():
         doc = load_windows(saved)
         if (_same_run(doc["summary"], config) and doc["summary"].get("bag_truth") == bag_identity(load_truth(path))
-                and doc["summary"].get("weights") == _weights_digest(config)
+                and doc["summary"].get("weights") == network_digest(config)
                 and doc["summary"].get("estimate", "sim") == run.estimate):
             return reassess(doc["windows"], config.health), doc["summary"]
     options = ReplayOptions(progress=progress, plot=True)
@@ -204,7 +205,7 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
     res = replay(path, target, config, options)
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
-    extra = {"bag_truth": bag_identity(load_truth(path)), "weights": _weights_digest(config), "estimate": run.estimate}
+    extra = {"bag_truth": bag_identity(load_truth(path)), "weights": network_digest(config), "estimate": run.estimate}
     res.summary.update(extra)
     doc = load_windows(saved)
     doc["summary"].update(extra)
@@ -230,18 +231,6 @@ def _kiss_sidecar(path: Path, folder: Path, progress: bool) -> Path:
     if side.exists():
         shutil.rmtree(side)
     return write_odometry_bag(side, stamps, est, frame, KISS_TOPIC)
-
-
-def _weights_digest(config: Config) -> str | None:
-    """sha256 of the segmentation weights a network replay used (the config names "" for the shipped file,
-    whatever it holds), None without the network."""
-    if config.segmentation.mode != "network":
-        return None
-    import hashlib
-
-    from ..segmentation.checkpoint import SHIPPED
-
-    return hashlib.sha256(Path(config.segmentation.weights or SHIPPED).read_bytes()).hexdigest()
 
 
 def clean_windows(records: list[dict], episodes: list[dict], settle_s: float = CLEAN_AFTER_S) -> list[dict]:

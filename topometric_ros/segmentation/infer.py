@@ -24,14 +24,17 @@ from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
-from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, torch_device
+from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
 from .knn import knn_vote
+from .quantize import cpu_has_vnni, load_ranges, quantize
 
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
 EXPORT_TOLERANCE = 1e-3
 #: Image shape (rows, columns) the ONNX export is first made and checked for: a 32-beam, 1800-column grid.
 PROBE_SHAPE = (32, 1800)
+#: Least share of the probe image's labels the int8 network must give as PyTorch does (float32) at load time.
+INT8_AGREEMENT = 0.95
 
 log = logging.getLogger(__name__)
 
@@ -104,36 +107,46 @@ def _mirror(t: torch.Tensor) -> torch.Tensor:
     return torch.roll(torch.flip(t, (-1,)), 1, -1)
 
 
-class _OnnxRunner:
-    """A Labeller exported to ONNX in memory and run by ONNX Runtime on the CPU with ``threads`` threads."""
+def export_onnx(labeller: Labeller, height: int, width: int) -> bytes:
+    """The Labeller as ONNX bytes for (B, 6, height, width) images (batch size free)."""
+    buf = io.BytesIO()
+    with warnings.catch_warnings():  # the TorchScript-based exporter warns that it is deprecated
+        warnings.simplefilter("ignore")
+        torch.onnx.export(labeller, (_probe_input(height, width),), buf, dynamo=False, input_names=["image"],
+                          output_names=["labels", "confidence"], opset_version=17,
+                          dynamic_axes={"image": {0: "batch"}, "labels": {0: "batch"}, "confidence": {0: "batch"}})
+    return buf.getvalue()
 
-    def __init__(self, labeller: Labeller, height: int, width: int, threads: int):
+
+class _OnnxRunner:
+    """A Labeller exported to ONNX in memory and run by ONNX Runtime on the CPU with ``threads`` threads;
+    with ``ranges`` (quantize.load_ranges) its body runs int8."""
+
+    def __init__(self, labeller: Labeller, height: int, width: int, threads: int, ranges: dict | None = None):
         import onnxruntime as ort  # ImportError -> the caller falls back to eager
 
-        x = _probe_input(height, width)
-        buf = io.BytesIO()
-        with warnings.catch_warnings():  # the TorchScript-based exporter warns that it is deprecated
-            warnings.simplefilter("ignore")
-            torch.onnx.export(labeller, (x,), buf, dynamo=False, input_names=["image"],
-                              output_names=["labels", "confidence"], opset_version=17,
-                              dynamic_axes={"image": {0: "batch"}, "labels": {0: "batch"}, "confidence": {0: "batch"}})
+        model = export_onnx(labeller, height, width)
+        if ranges is not None:
+            model = quantize(model, ranges)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
-        self.session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
-        self._check(labeller, x)
+        self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+        self._check(labeller, _probe_input(height, width), ranges is not None)
 
-    def _check(self, labeller: Labeller, x: torch.Tensor) -> None:
-        """The export must give PyTorch's logits on a fixed input (to EXPORT_TOLERANCE)."""
+    def _check(self, labeller: Labeller, x: torch.Tensor, int8: bool) -> None:
+        """The export must give PyTorch's labels and confidence on a fixed input (float32: to EXPORT_TOLERANCE
+        and 99.9 % of labels; int8: INT8_AGREEMENT of labels)."""
         with torch.no_grad():
             want_labels, want_conf = labeller(x)
         labels, conf = self(x.numpy())
         diff = float(np.abs(conf - want_conf.numpy()).max())
         agree = float((labels == want_labels.numpy()).mean())
-        if diff > EXPORT_TOLERANCE or agree < 0.999:
-            raise RuntimeError(f"ONNX export differs from PyTorch: confidence {diff:.2e}, labels agree {agree:.4%}")
+        if agree < (INT8_AGREEMENT if int8 else 0.999) or (diff > EXPORT_TOLERANCE and not int8):
+            raise RuntimeError(f"{'int8' if int8 else 'ONNX'} export differs from PyTorch: confidence {diff:.2e}, "
+                               f"labels agree {agree:.4%}")
 
     def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         labels, conf = self.session.run(None, {"image": np.ascontiguousarray(images, np.float32)})
@@ -168,7 +181,7 @@ class Segmenter:
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
-                 knn_distance: float = 0.5):
+                 knn_distance: float = 0.5, int8_ranges: dict | None = None):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
@@ -185,6 +198,8 @@ class Segmenter:
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
         self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
+        self._int8_ranges = int8_ranges if self.backend == "onnxruntime" and passes == 1 else None
+        self.precision = "float32" if self._int8_ranges is None else "int8"
         self._onnx: dict[tuple[int, int], _OnnxRunner] = {}
         if self.backend == "onnxruntime":
             self._runner(*PROBE_SHAPE)  # fail over to eager now, not on the first scan
@@ -195,7 +210,7 @@ class Segmenter:
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
-                   cfg.max_beams, cfg.knn, cfg.knn_distance)
+                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state))
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -250,13 +265,20 @@ class Segmenter:
         """The ONNX Runtime export for images of this shape (made and checked once); on failure the
         Segmenter switches to eager PyTorch with a warning and returns None."""
         key = (int(height), int(width))
+        if key not in self._onnx and self.precision == "int8":
+            try:
+                self._onnx[key] = _OnnxRunner(self.labeller, *key, self.threads, self._int8_ranges)
+            except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
+                log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
+                            _first_line(e))
+                self.precision, self._onnx = "float32", {}
         if key not in self._onnx:
             try:
                 self._onnx[key] = _OnnxRunner(self.labeller, *key, self.threads)
             except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
                 log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
-                            type(e).__name__, str(e).splitlines()[0] if str(e) else "")
-                self.backend = "eager"
+                            type(e).__name__, _first_line(e))
+                self.backend, self.precision = "eager", "float32"
                 return None
         return self._onnx[key]
 
@@ -265,6 +287,27 @@ class Segmenter:
         x = torch.from_numpy(np.ascontiguousarray(images, np.float32)).to(self.device, non_blocking=True)
         labels, conf = self.labeller(x)
         return labels.cpu().numpy(), conf.float().cpu().numpy()
+
+
+def _first_line(e: Exception) -> str:
+    return str(e).splitlines()[0] if str(e) else ""
+
+
+def _int8_ranges(cfg: SegmentationConfig, weights: Path, state: dict) -> dict | None:
+    """The activation ranges to run the network int8 with (segmentation.precision: int8, or auto on a CPU
+    with VNNI), else None; why an int8 request falls back to float32 is logged (a warning when int8 was
+    asked for by name)."""
+    if cfg.precision == "float32" or (cfg.precision == "auto" and not cpu_has_vnni()):
+        return None
+    if cfg.backend != "onnxruntime" or cfg.device != "cpu":
+        ranges, why = None, "int8 runs on the onnxruntime CPU backend only"
+    elif cfg.passes != 1:
+        ranges, why = None, "int8 runs one pass only (segmentation.passes 1)"
+    else:
+        ranges, why = load_ranges(weights, state_digest(state))
+    if ranges is None:
+        (log.warning if cfg.precision == "int8" else log.info)("segmentation: float32 network: %s", why)
+    return ranges
 
 
 def segment_frame(frame, cfg: SegmentationConfig, segmenter: Segmenter | None = None, grid=None

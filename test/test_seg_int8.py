@@ -1,0 +1,115 @@
+"""The int8 network (segmentation/quantize.py, config segmentation.precision): calibrated activation ranges
+shipped beside the weights, the body quantized at load time, the same labels as float32 on nearly every point."""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+
+import numpy as np
+import onnx
+import pytest
+
+from topometric_ros.config import SegmentationConfig
+from topometric_ros.segmentation.checkpoint import SHIPPED, load_weights, state_digest
+from topometric_ros.segmentation.infer import Segmenter, export_onnx
+from topometric_ros.segmentation.quantize import (RANGES_NAME, _merge, calibrate_scans, cpu_has_vnni, load_ranges,
+                                                  quantize, write_ranges)
+from topometric_ros.sim.frames import simulated_frames
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return simulated_frames("office2", 2, seed=4242)[0]
+
+
+def _labels(seg, frames):
+    return np.concatenate([seg.predict(f.points, f.ring, f.intensity)[0] for f in frames])
+
+
+def test_vnni_is_read_off_the_cpu_flags(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f avx512_vnni\n")
+    assert cpu_has_vnni(info)
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f\n")  # avx512f alone is no VNNI
+    assert not cpu_has_vnni(info)
+    assert not cpu_has_vnni(tmp_path / "absent")
+
+
+def test_the_shipped_ranges_fit_the_shipped_weights_and_no_others(tmp_path):
+    _, state = load_weights(SHIPPED)
+    ranges, why = load_ranges(SHIPPED, state_digest(state))
+    assert why == "" and ranges["calibration_method"]
+    doc = json.loads((SHIPPED.parent / RANGES_NAME).read_text())
+    assert doc["command"].startswith("topometric quantize ") and doc["images"] > 100
+    ranges, why = load_ranges(SHIPPED, "0" * 64)
+    assert ranges is None and "calibrated for other weights" in why
+    ranges, why = load_ranges(tmp_path / "rangenet.pt", state_digest(state))
+    assert ranges is None and "topometric quantize" in why
+
+
+def test_only_the_body_runs_int8_the_stem_and_head_stay_float():
+    seg = Segmenter.from_config(SegmentationConfig(precision="float32"))
+    _, state = load_weights(SHIPPED)
+    ranges, _ = load_ranges(SHIPPED, state_digest(state))
+    model = onnx.load_from_string(quantize(export_onnx(seg.labeller, 32, 1024), ranges))
+    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    made = {o: n.op_type for n in model.graph.node for o in n.output}
+    float_convs = [n.name for n in convs if made.get(n.input[0]) != "DequantizeLinear"]
+    assert float_convs == ["/stem/conv/Conv", "/head/Conv"]
+    assert len(convs) == 13  # the other 11 read int8 activations and weights
+
+
+def test_int8_gives_the_float32_labels_on_nearly_every_point(frames):
+    f32 = Segmenter.from_config(SegmentationConfig(precision="float32"))
+    int8 = Segmenter.from_config(SegmentationConfig(precision="int8"))
+    assert (f32.precision, int8.precision) == ("float32", "int8")
+    a, b = _labels(f32, frames), _labels(int8, frames)
+    assert 0.99 <= (a == b).mean() < 1.0  # not the same network, nearly the same labels
+
+
+def test_int8_without_ranges_for_the_weights_falls_back_to_float32_and_says_why(tmp_path, caplog, frames):
+    shutil.copy(SHIPPED, tmp_path / "rangenet.pt")
+    with caplog.at_level(logging.INFO):
+        seg = Segmenter.from_config(SegmentationConfig(weights=str(tmp_path / "rangenet.pt"), precision="int8"))
+    assert seg.precision == "float32"
+    assert any(r.levelno == logging.WARNING and "topometric quantize" in r.getMessage() for r in caplog.records)
+    for cfg in (SegmentationConfig(precision="int8", passes=2), SegmentationConfig(precision="int8", backend="eager")):
+        assert Segmenter.from_config(cfg).precision == "float32"
+
+
+def _calibrated(folder, frames):
+    """A copy of the shipped weights in ``folder`` with ranges calibrated on ``frames``; its Segmenter."""
+    shutil.copy(SHIPPED, folder / "rangenet.pt")
+    ranges, images, digest = calibrate_scans(folder / "rangenet.pt", [(f.points, f.ring, f.intensity) for f in frames])
+    assert images == len(frames)  # one 32-row image per VLP-32C scan
+    write_ranges(ranges, folder / "rangenet.pt", digest, "test", images)
+    return Segmenter.from_config(SegmentationConfig(weights=str(folder / "rangenet.pt"), precision="int8"))
+
+
+def test_calibration_round_trip_ranges_written_beside_the_weights_run_int8(tmp_path, frames):
+    garage = simulated_frames("garage", 2, seed=4242)[0]
+    seg = _calibrated(tmp_path, frames + garage)
+    assert seg.precision == "int8"
+    f32 = Segmenter.from_config(SegmentationConfig(precision="float32"))
+    assert (_labels(seg, frames) == _labels(f32, frames)).mean() >= 0.99
+
+
+def test_ranges_too_narrow_for_the_load_time_check_give_float32_with_the_reason(tmp_path, frames, caplog):
+    """Two scans of one office: activations of farther ranges saturate; the check on the probe image
+    (ranges to 30 m) refuses the int8 network."""
+    with caplog.at_level(logging.WARNING):
+        seg = _calibrated(tmp_path, frames)
+    assert seg.precision == "float32"
+    assert any("int8 network unavailable" in r.getMessage() and "labels agree" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_ranges_of_several_image_shapes_merge_to_the_widest():
+    def cache(lo, hi):
+        arr = lambda v: {"data": [v], "dtype": "float32", "CLS": "numpy.array"}  # noqa: E731
+        return {"CLS": "TensorsData", "calibration_method": "MinMax",
+                "data": {"t": {"lowest": arr(lo), "highest": arr(hi), "CLS": "TensorData"}}}
+    merged = _merge(cache(-1.0, 2.0), cache(-3.0, 1.0))
+    assert merged["data"]["t"]["lowest"]["data"] == [-3.0] and merged["data"]["t"]["highest"]["data"] == [2.0]
+    assert _merge({}, cache(0.0, 1.0)) == cache(0.0, 1.0)

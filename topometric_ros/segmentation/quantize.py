@@ -1,0 +1,190 @@
+"""The network in int8 on CPUs with VNNI: activation ranges calibrated once on simulated scans and shipped
+beside the weights (``rangenet.int8.json``), the exported network quantized in memory at load time.
+
+Only the body of the net runs int8 (ONNX Runtime QDQ, per-channel int8 weights, uint8 activations): the stem
+(raw ranges and coordinates in), the head (logits out) and the read-out stay float32; quantizing those too
+cost 13.5 mIoU (docs/results.md). On a CPU without VNNI int8 convolutions gain little (11 %) and risk
+saturation, so ``segmentation.precision: auto`` runs int8 only where the CPU has VNNI.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import tempfile
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+PRECISIONS = ("auto", "int8", "float32")
+RANGES_NAME = "rangenet.int8.json"
+FORMAT_VERSION = 1
+#: RangeNet's modules that run int8 (its body); the stem, the head and the read-out stay float32.
+INT8_MODULES = ("enc2", "enc3", "fuse2", "fuse1", "refine")
+#: ONNX operators quantized inside those modules (Slice + Concat are the circular azimuth padding).
+INT8_OPS = ["Conv", "Concat", "Slice", "Relu", "Add", "Resize"]
+VNNI_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
+
+
+def cpu_has_vnni(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
+    """Whether the CPU multiplies 8-bit integers with VNNI (x86 flags avx512_vnni, avx_vnni or amx_int8);
+    False when ``cpuinfo`` cannot be read (another OS or architecture)."""
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return False
+    flags = next((line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), [])
+    return any(f in flags for f in VNNI_FLAGS)
+
+
+def int8_nodes(model) -> list[str]:
+    """Names of the exported graph's nodes that run int8: those inside INT8_MODULES (torch names a node
+    ``/module/.../Op``)."""
+    return [n.name for n in model.graph.node if n.name.split("/")[1:2] and n.name.split("/")[1] in INT8_MODULES]
+
+
+def make_ranges(bags: Sequence[str | Path], weights: str | Path, every: int = 2, command: str = "") -> Path:
+    """Calibrate the int8 network of ``weights`` on every ``every``-th scan of ``bags`` (any sensors) and save
+    the ranges beside the weights (:func:`write_ranges`); returns the path."""
+    from tqdm import tqdm
+
+    from .data import read_scans
+
+    scans = ((s.points, s.grid, s.intensity) for bag in tqdm(bags, desc="calibration scans", unit="bag")
+             for s in read_scans(bag, every=every))
+    ranges, images, digest = calibrate_scans(weights, scans)
+    return write_ranges(ranges, weights, digest, command, images)
+
+
+def calibrate_scans(weights: str | Path, scans: Iterable[tuple]) -> tuple[dict, int, str]:
+    """(activation ranges, range images seen, the weights' state digest) of the network of ``weights`` run
+    one pass on every beam of ``scans``: (points (N, 3) sensor frame, grid.ScanGrid or beam ids, intensity)."""
+    from .checkpoint import build_model, load_weights, state_digest
+    from .infer import Labeller, export_onnx
+    from .model import fold_batchnorm
+    from .projection import checked, project
+
+    card, state = load_weights(weights)
+    labeller = Labeller(fold_batchnorm(build_model(card, state, str(weights)))).eval()
+    by_shape: dict[tuple, list[np.ndarray]] = {}
+    for points, grid, intensity in scans:
+        images, _ = project(*checked(points, grid, intensity), intensity)
+        by_shape.setdefault(images.shape[2:], []).append(images.astype(np.float32))
+    if not by_shape:
+        raise ValueError("no scans to calibrate the int8 network on")
+    ranges = calibrate((export_onnx(labeller, *shape), images) for shape, images in by_shape.items())
+    n = sum(im.shape[0] for images in by_shape.values() for im in images)
+    return ranges, n, state_digest(state)
+
+
+def ranges_path(weights: str | Path) -> Path:
+    """Where the activation ranges of a weights file live: beside it."""
+    return Path(weights).parent / RANGES_NAME
+
+
+def load_ranges(weights: str | Path, state_sha256: str) -> tuple[dict | None, str]:
+    """(ORT calibration ranges, "") for the weights whose tensors hash to ``state_sha256``, or (None, why not)."""
+    path = ranges_path(weights)
+    if not path.is_file():
+        return None, f"no activation ranges beside the weights ({path.name}; make them with topometric quantize)"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        return None, f"{path}: not readable JSON ({e})"
+    if doc.get("format_version") != FORMAT_VERSION or not isinstance(doc.get("ranges"), dict):
+        return None, f"{path}: not an activation-range file of format {FORMAT_VERSION}"
+    if doc.get("state_sha256") != state_sha256:
+        return None, f"{path} was calibrated for other weights; run topometric quantize for these"
+    return doc["ranges"], ""
+
+
+def quantize(model_bytes: bytes, ranges: dict) -> bytes:
+    """The exported float32 network (ONNX bytes) with its body quantized to int8 using ``ranges``."""
+    with tempfile.TemporaryDirectory(prefix="topometric-int8-") as tmp:
+        cache = Path(tmp) / "ranges.json"
+        cache.write_text(json.dumps(ranges))
+        return _quantize_static(model_bytes, None, cache)
+
+
+def _quantize_static(model_bytes: bytes, images, cache: Path) -> bytes:
+    """ORT static QDQ quantization of the body (INT8_MODULES): ranges read from ``cache``, or measured on
+    ``images`` (a CalibrationDataReader) and written there. Without VNNI the weights take 7 bits (ORT's
+    reduce_range: no saturation in the 16-bit sums of AVX2's 8-bit products)."""
+    import onnx
+    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+
+    model = onnx.load_from_string(model_bytes)
+    out = cache.with_suffix(".onnx")
+    with _quiet_root_logger():
+        quantize_static(model, out, images, quant_format=QuantFormat.QDQ, op_types_to_quantize=INT8_OPS,
+                        nodes_to_quantize=int8_nodes(model), per_channel=True, reduce_range=not cpu_has_vnni(),
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        calibration_cache_path=cache)
+    return out.read_bytes()
+
+
+def calibrate(exports: Iterable[tuple[bytes, list[np.ndarray]]]) -> dict:
+    """ORT MinMax activation ranges of the exported network over range images: ``exports`` gives, per image
+    shape, (the export for that shape, its (B, 6, H, W) float32 images); the ranges of all shapes merged."""
+    from onnxruntime.quantization import CalibrationDataReader
+
+    class _Images(CalibrationDataReader):
+        def __init__(self, images):
+            self._it = iter([{"image": im[i:i + 1]} for im in images for i in range(im.shape[0])])
+
+        def get_next(self):
+            return next(self._it, None)
+
+    merged: dict = {}
+    with tempfile.TemporaryDirectory(prefix="topometric-int8-") as tmp:
+        for i, (model_bytes, images) in enumerate(exports):
+            cache = Path(tmp) / f"ranges{i}.json"
+            _quantize_static(model_bytes, _Images(images), cache)
+            merged = _merge(merged, json.loads(cache.read_text()))
+    return merged
+
+
+def _merge(a: dict, b: dict) -> dict:
+    """Two ORT MinMax range caches as one: per tensor the lower lowest and the higher highest."""
+    if not a:
+        return b
+    out = json.loads(json.dumps(a))
+    for name, rb in b["data"].items():
+        ra = out["data"].setdefault(name, rb)
+        if ra is not rb:
+            ra["lowest"] = _reduce(ra["lowest"], rb["lowest"], np.minimum)
+            ra["highest"] = _reduce(ra["highest"], rb["highest"], np.maximum)
+    return out
+
+
+def _reduce(x, y, op):
+    """Elementwise ``op`` of two ORT-serialised ranges: floats, or arrays {"data": [...], "dtype", "CLS"}."""
+    if not isinstance(x, dict):
+        return float(op(x, y))
+    return {**x, "data": op(np.asarray(x["data"], np.float32), np.asarray(y["data"], np.float32)).tolist()}
+
+
+@contextlib.contextmanager
+def _quiet_root_logger():
+    """ONNX Runtime's quantizer advises pre-processing on the root logger at WARNING; not for our users."""
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        root.setLevel(level)
+
+
+def write_ranges(ranges: dict, weights: str | Path, state_sha256: str, command: str, images: int) -> Path:
+    """Save the ranges beside the weights, tied to their tensors' digest; returns the path."""
+    path = ranges_path(weights)
+    doc = {"format_version": FORMAT_VERSION, "state_sha256": state_sha256, "command": command, "images": images,
+           "ranges_sha256": hashlib.sha256(json.dumps(ranges, sort_keys=True).encode()).hexdigest(),
+           "ranges": ranges}
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    return path
