@@ -104,3 +104,53 @@ def test_the_segmenter_votes_after_the_network_and_the_vote_does_not_lower_miou_
 def test_a_negative_or_fractional_k_is_refused():
     with pytest.raises(SegmentationError, match="segmentation.knn"):
         Segmenter.from_config(replace(SegmentationConfig(), knn=-1))
+
+
+def _reference_vote(points, grid, labels, conf, k, distance, window):
+    """The rule of knn_vote written plainly: the last point of each cell, the window's points within
+    ``distance`` sorted by distance (stable), the k nearest vote, the own label wins ties."""
+    occupant = {}
+    for i, cell in enumerate(zip(grid.row, grid.col)):
+        occupant[cell] = i
+    out, out_conf = labels.copy(), conf.copy()
+    rows, cols = window
+    for i in range(len(points)):
+        near = []
+        for dr in range(-(rows // 2), rows - rows // 2):
+            for dc in range(-(cols // 2), cols - cols // 2):
+                j = occupant.get((grid.row[i] + dr, (grid.col[i] + dc) % grid.width))
+                if j is not None and 0 <= grid.row[i] + dr < grid.height:
+                    d = float(np.sum((points[j].astype(np.float64) - points[i]) ** 2))
+                    if d < distance ** 2:
+                        near.append((d, j))
+        voters = [j for _, j in sorted(near, key=lambda t: t[0])[:k]]
+        votes = np.zeros(C.NUM_CLASSES)
+        votes[labels[i]] = 0.5
+        for j in voters:
+            votes[labels[j]] += 1
+        win = int(np.argmax(votes))
+        if win != labels[i]:
+            out[i] = win
+            out_conf[i] = np.mean([conf[j] for j in voters if labels[j] == win])
+    return out, out_conf
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_vote_matches_its_rule_written_plainly_on_random_scans(seed):
+    """Random points on a small grid (some cells empty, some shared), random labels of a few classes: the
+    compiled vote (with its shortcut for windows of one class) gives the plain rule's labels and confidence."""
+    rng = np.random.default_rng(seed)
+    height, width, n = 6, 24, 150
+    row, col = rng.integers(0, height, n).astype(np.int32), rng.integers(0, width, n).astype(np.int32)
+    az = 2 * np.pi * col / width
+    rng_m = 2.0 + rng.random(n)
+    points = np.stack([rng_m * np.cos(az), rng_m * np.sin(az), 0.1 * row + 0.05 * rng.random(n)], 1).astype(np.float32)
+    labels = rng.choice([C.FLOOR, C.WALL, C.CHAIR], n, p=[0.6, 0.3, 0.1]).astype(np.uint8)
+    conf = rng.random(n).astype(np.float32)
+    grid = ScanGrid(row, col, height, width, np.zeros(height), "test")
+    for k, window, distance in ((3, (3, 5), 0.8), (5, (3, 5), 2.0), (1, (5, 3), 0.5)):
+        want = _reference_vote(points, grid, labels, conf, k, distance, window)
+        got = knn_vote(points, grid, labels, conf, k, distance, window)
+        assert np.array_equal(got[0], want[0])
+        assert np.allclose(got[1], want[1], atol=1e-6)
+    assert (knn_vote(points, grid, labels, conf, 5, 2.0)[0] != labels).any()  # the vote had work to do

@@ -19,6 +19,7 @@ from ..grid import ScanGrid
 #: Rows x columns of grid cells around a point whose points may vote (chosen with k = 3 and 0.5 m on the
 #: validation layout: docs/results.md).
 WINDOW = (3, 5)
+assert C.NUM_CLASSES <= 8, "_classes_across keeps a window's classes as the bits of a uint8"
 
 
 def knn_vote(points: np.ndarray, grid: ScanGrid, labels: np.ndarray, confidence: np.ndarray, k: int,
@@ -45,12 +46,20 @@ def _vote(points, row, col, height, width, labels, conf, k, rows, columns, dista
     occupant = np.full(height * width, -1, np.int64)  # the point of each cell (the last, where several share it)
     for i in range(len(points)):
         occupant[row[i] * width + col[i]] = i
+    across = _classes_across(occupant, labels, height, width, columns)
     best_d = np.empty(k)
     best_j = np.empty(k, np.int64)
     votes = np.empty(classes)
     window = np.empty(rows * columns, np.int64)
     for i in range(len(points)):
-        n, mixed = 0, False  # the window's points; whether any is labelled otherwise (else nothing can change)
+        present = np.uint8(0)  # the classes in the point's window: its own alone, and nothing can change
+        for dr in range(-(rows // 2), rows - rows // 2):
+            r = row[i] + dr
+            if 0 <= r < height:
+                present |= across[r * width + col[i]]
+        if present == np.uint8(1) << labels[i]:
+            continue
+        n = 0  # the window's points
         for dr in range(-(rows // 2), rows - rows // 2):
             r = row[i] + dr
             if r < 0 or r >= height:
@@ -62,9 +71,6 @@ def _vote(points, row, col, height, width, labels, conf, k, rows, columns, dista
                 if j >= 0:
                     window[n] = j
                     n += 1
-                    mixed = mixed or labels[j] != labels[i]
-        if not mixed:
-            continue
         found = 0
         for t in range(n):
             j = window[t]
@@ -95,3 +101,26 @@ def _vote(points, row, col, height, width, labels, conf, k, rows, columns, dista
                     agree += 1
             out_labels[i] = win
             out_conf[i] = total / agree
+
+
+@numba.njit(cache=True, nogil=True)
+def _classes_across(occupant, labels, height, width, columns):
+    """Per grid cell, the classes (bit c for class c) of the cells' occupants in the ``columns`` cells of its
+    row centred on it (azimuth wraps); with the rows above and below, a point's window holds only its own
+    class when the union is that class's bit."""
+    bits = np.zeros(height * width, np.uint8)
+    for cell in range(height * width):
+        if occupant[cell] >= 0:
+            bits[cell] = np.uint8(1) << labels[occupant[cell]]
+    across = np.zeros(height * width, np.uint8)
+    half = columns // 2
+    for r in range(height):
+        base = r * width
+        for c in range(width):
+            m = np.uint8(0)
+            for dc in range(-half, columns - half):
+                cc = c + dc
+                cc = cc + width if cc < 0 else (cc - width if cc >= width else cc)
+                m |= bits[base + cc]
+            across[base + c] = m
+    return across

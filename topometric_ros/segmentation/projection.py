@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..grid import ScanGrid, as_grid, azimuth_cells, image_columns
@@ -68,20 +69,33 @@ def project(points: np.ndarray, grid=None, intensity: np.ndarray | None = None) 
     ``intensity`` (N,) 0..255, else 0. ProjectionError for arrays that do not fit."""
     points, grid = checked(points, grid, intensity)
     k, rows, width = image_shape(grid)
-    row = grid.row.astype(np.int64)
     col = grid.col if grid.azimuth is None else azimuth_cells(grid.azimuth, width)  # finer: where it fired
-    sub, pixel = row % k, (row // k) * width + col
-    proj = Projection(sub * (rows * width) + pixel, k, rows, width)
+    image = np.zeros(k * len(CHANNELS) * rows * width, np.float32)
+    flat = np.empty(len(points), np.int64)
+    no_intensity = np.zeros(0, np.float32)
+    _fill(points, no_intensity if intensity is None else np.asarray(intensity, np.float32), grid.row, col, k, rows,
+          width, image, flat)
+    return image.reshape(k, len(CHANNELS), rows, width), Projection(flat, k, rows, width)
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill(points, intensity, row, col, k, rows, width, image, flat):
+    """Write each point's CHANNELS into its pixel of the zeroed (k, channels, rows, width) ``image`` (flat; the
+    last point of a pixel wins) and its pixel's index in the stacked (k, rows, width) images into ``flat``.
+    Grid row r is row r // k of image r % k; intensity of length 0: none (0)."""
     channel = rows * width
-    image = np.zeros(k * len(CHANNELS) * channel, np.float32)
-    at = sub * (len(CHANNELS) * channel) + pixel  # flat index of each point's pixel in channel 0 (1-D: faster)
-    image[at] = np.sqrt(np.einsum("ij,ij->i", points, points))
-    for c in range(3):
-        image[at + (1 + c) * channel] = points[:, c]
-    if intensity is not None:
-        image[at + 4 * channel] = np.asarray(intensity, np.float32)
-    image[at + 5 * channel] = 1.0
-    return image.reshape(k, len(CHANNELS), rows, width), proj
+    for i in range(len(points)):
+        sub, pixel = row[i] % k, (row[i] // k) * width + col[i]
+        flat[i] = sub * channel + pixel
+        at = sub * (6 * channel) + pixel
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        image[at] = np.sqrt(x * x + y * y + z * z)
+        image[at + channel] = x
+        image[at + 2 * channel] = y
+        image[at + 3 * channel] = z
+        if len(intensity):
+            image[at + 4 * channel] = intensity[i]
+        image[at + 5 * channel] = 1.0
 
 
 def project_labels(proj: Projection, labels: np.ndarray, ignore: int = 255) -> np.ndarray:
