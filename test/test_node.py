@@ -395,6 +395,13 @@ class Feeder:
             time.sleep(0.05)
         assert matched(), "the node did not subscribe to /points and /odom"
 
+    def wait_tf_static(self, listener: Listener, node: Proc, timeout=10.0):
+        """Until the node says its extrinsic comes from our /tf_static (it is latched, but DDS may deliver it
+        after /points and /odom matched)."""
+        assert listener.wait_for("/diagnostics", lambda a: any(
+            s.name == CONSISTENCY and values(s).get("extrinsic") == "tf_static" for s in a.status), timeout, node), \
+            "the node never took the extrinsic from /tf_static"
+
     def scan(self, points, pose, labels=None, now=None):
         """Odometry just before and after ``now`` (s, wall), then the cloud stamped ``now``."""
         now = time.time() if now is None else now
@@ -436,15 +443,26 @@ def test_markers_have_the_true_plane_extents_in_the_map_frame(ros_env, tmp_path)
         feeder.wait_matched()
         pts, labels = wall_patch()
         pose = yaw_pose(90.0, (10.0, 5.0, 0.0))
+        feeder.scan(pts, pose, labels)  # the node learns the cloud and odometry frames, then links them by /tf_static
+        feeder.wait_tf_static(listener, node)
+        t0 = time.time()
         got = None
-        for _ in range(30):
+        for _ in range(30):  # the markers of a window whose scans all came after that
             feeder.scan(pts, pose, labels)
-            got = listener.wait_for(f"/{NODE}/planes", lambda a: any(m.type == m.CUBE for m in a.markers), 0.3, node)
+            time.sleep(0.3)
+            ends = [float(values(s)["window_end"]) for _, _, s in statuses(listener)
+                    if float(values(s).get("window_start", "0")) > t0]
+            got = next((a for _, a in listener.messages(f"/{NODE}/planes")
+                        if any(m.type == m.CUBE for m in a.markers) and any(
+                            abs(a.markers[0].header.stamp.sec + 1e-9 * a.markers[0].header.stamp.nanosec - e) < 1e-3
+                            for e in ends)), None)
             if got:
                 break
         assert got, "no MarkerArray"
-        cubes = [m for m in got[1].markers if m.type == m.CUBE]
+        cubes = [m for m in got.markers if m.type == m.CUBE]
         assert len(cubes) == 3  # one wall per scan, 3 scans per window
+        assert all(values(s)["extrinsic"] == "tf_static" for _, _, s in statuses(listener)
+                   if float(values(s).get("window_start", "0")) > t0)  # each window says where its extrinsic came from
         for m in cubes:
             assert m.header.frame_id == "map"
             assert abs(m.scale.x - 4.0) < 0.05 and abs(m.scale.y - 2.0) < 0.05, (m.scale.x, m.scale.y)

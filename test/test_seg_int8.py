@@ -113,3 +113,11 @@ def test_ranges_of_several_image_shapes_merge_to_the_widest():
     merged = _merge(cache(-1.0, 2.0), cache(-3.0, 1.0))
     assert merged["data"]["t"]["lowest"]["data"] == [-3.0] and merged["data"]["t"]["highest"]["data"] == [2.0]
     assert _merge({}, cache(0.0, 1.0)) == cache(0.0, 1.0)
+
+
+def test_quantizing_at_load_time_says_nothing_of_onnx_runtime_internals(caplog):
+    """ONNX Runtime's quantizer advises pre-processing on the root logger; a user should not see that."""
+    with caplog.at_level(logging.INFO):
+        seg = Segmenter.from_config(SegmentationConfig(precision="int8"))
+    assert seg.precision == "int8"
+    assert [r.getMessage() for r in caplog.records if "onnxruntime" in r.pathname] == []

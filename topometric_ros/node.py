@@ -187,7 +187,7 @@ class MonitorNode(Node):
     def _on_window(self, result, scans) -> None:
         """Worker thread: keep the window's status, publish it now (every window reaches /diagnostics)."""
         latency = self._now() - result.stamps[-1]
-        values = window_values(result, self.monitor.counters)
+        values = {**window_values(result, self.monitor.counters), "extrinsic": self.monitor.extrinsic_source}
         with self._lock:
             self._last_window = (result.level, result.message, values)
             lat = self._latency
@@ -216,13 +216,14 @@ class MonitorNode(Node):
             stat.summary(LEVELS[checked[0]], checked[1])
             values = {k: str(v) for k, v in self.monitor.counters.items()}
             values["last_error"] = self.monitor.last_error
+            values["extrinsic"] = self.monitor.extrinsic_source
         elif last is not None:
             stat.summary(LEVELS[last[0]], last[1])
             values = last[2]
         else:
             w = self.config.window
             stat.summary(DiagnosticStatus.OK, f"waiting for the first window ({w.size} scans)")
-            values = {k: str(v) for k, v in self.monitor.counters.items()}
+            values = {**{k: str(v) for k, v in self.monitor.counters.items()}, "extrinsic": self.monitor.extrinsic_source}
         for key, value in values.items():
             stat.add(key, value)
         return stat

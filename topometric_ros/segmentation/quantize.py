@@ -170,14 +170,17 @@ def _reduce(x, y, op):
 
 @contextlib.contextmanager
 def _quiet_root_logger():
-    """ONNX Runtime's quantizer advises pre-processing on the root logger at WARNING; not for our users."""
+    """ONNX Runtime's quantizer advises pre-processing on the root logger at WARNING; not for our users. Only
+    its own records are dropped (other threads keep logging)."""
+    def not_from_ort(record: logging.LogRecord) -> bool:
+        return "onnxruntime" not in record.pathname
+
     root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.ERROR)
+    root.addFilter(not_from_ort)
     try:
         yield
     finally:
-        root.setLevel(level)
+        root.removeFilter(not_from_ort)
 
 
 def write_ranges(ranges: dict, weights: str | Path, state_sha256: str, command: str, images: int) -> Path:
