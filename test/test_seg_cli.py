@@ -53,6 +53,25 @@ def test_train_writes_loadable_weights_and_a_model_card(trained, office_bag, tmp
     assert metrics["speed"]["scans"] == 2 and metrics["speed"]["scans_per_s"] > 0
 
 
+def test_quantize_calibrates_trained_weights_for_int8_and_eval_seg_says_which_ran(trained, office_bag, tmp_path,
+                                                                                capsys):
+    """`topometric quantize` writes the activation ranges beside freshly trained weights; eval-seg then runs
+    them int8 when asked (and says so), float32 before."""
+    import shutil
+
+    _, out = trained
+    bag, _ = office_bag
+    weights = tmp_path / "rangenet.pt"
+    shutil.copy(out / "w" / "rangenet.pt", weights)
+    args = ["eval-seg", str(bag), "--weights", str(weights), "--limit", "2", "--precision", "int8"]
+    assert main([*args, "--out", str(tmp_path / "before")]) == 0
+    assert "float32 network" in capsys.readouterr().out  # no ranges yet: float32, with the reason logged
+    assert main(["quantize", str(bag), "--weights", str(weights), "--every", "5"]) == 0
+    assert "rangenet.int8.json" in capsys.readouterr().out and (tmp_path / "rangenet.int8.json").is_file()
+    assert main([*args, "--out", str(tmp_path / "after")]) == 0
+    assert "int8 network" in capsys.readouterr().out
+
+
 def test_eval_seg_with_tampered_weights_is_a_clear_error(trained, office_bag, tmp_path, capsys):
     _, out = trained
     bad = out / "w" / "rangenet.pt"

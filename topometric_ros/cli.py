@@ -348,6 +348,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     val_m = card["metrics"].get("val", {})
     if "val_miou" in val_m:
         print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
+    print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
+          f"--weights {args.out}/rangenet.pt")
     return 0
 
 
