@@ -417,7 +417,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import SegmentationConfig
+    from .config import CHOICES, SegmentationConfig
 
     p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -486,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most beams the network sees, the rest take their neighbours' labels (segmentation.max_beams; 0 = all)")
     e.add_argument("--knn", type=int, default=SegmentationConfig().knn,
                    help="k-nearest-neighbour vote after the network (segmentation.knn; 0 = off)")
-    e.add_argument("--precision", default=SegmentationConfig().precision, choices=("auto", "int8", "float32"),
+    e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
                    help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
     e.add_argument("--every", type=int, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")

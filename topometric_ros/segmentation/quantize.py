@@ -20,7 +20,6 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("auto", "int8", "float32")
 RANGES_NAME = "rangenet.int8.json"
 FORMAT_VERSION = 1
 #: RangeNet's modules that run int8 (its body); the stem, the head and the read-out stay float32.
