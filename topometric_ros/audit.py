@@ -150,10 +150,6 @@ def _read(files: dict[str, Path]) -> dict[str, bytes]:
     return {name: path.read_bytes() for name, path in files.items()}
 
 
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 # ------------------------------------------------------------------ one bag (the task)
 @dataclass(frozen=True)
 class BagTask:

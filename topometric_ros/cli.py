@@ -361,7 +361,7 @@ def cmd_quantize(args: argparse.Namespace) -> int:
     from .segmentation.quantize import make_ranges
 
     bags = expand_bags(args.bags)
-    command = "topometric quantize " + shlex.join(map(str, args.bags)) + f" --every {args.every}"
+    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
     path = make_ranges(bags, args.weights or SHIPPED, args.every, command)
     print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
     return 0

@@ -214,19 +214,21 @@ class MonitorNode(Node):
             last = self._last_window
         if checked is not None:
             stat.summary(LEVELS[checked[0]], checked[1])
-            values = {k: str(v) for k, v in self.monitor.counters.items()}
-            values["last_error"] = self.monitor.last_error
-            values["extrinsic"] = self.monitor.extrinsic_source
+            values = {**self._monitor_values(), "last_error": self.monitor.last_error}
         elif last is not None:
             stat.summary(LEVELS[last[0]], last[1])
             values = last[2]
         else:
             w = self.config.window
             stat.summary(DiagnosticStatus.OK, f"waiting for the first window ({w.size} scans)")
-            values = {**{k: str(v) for k, v in self.monitor.counters.items()}, "extrinsic": self.monitor.extrinsic_source}
+            values = self._monitor_values()
         for key, value in values.items():
             stat.add(key, value)
         return stat
+
+    def _monitor_values(self) -> dict:
+        """The monitor's counters and where its extrinsic comes from, as status values (no window yet)."""
+        return {**{k: str(v) for k, v in self.monitor.counters.items()}, "extrinsic": self.monitor.extrinsic_source}
 
     def _latency_task(self, stat):
         """The Updater's 'latency': scan stamp -> window result (node clock), worst since the last report."""

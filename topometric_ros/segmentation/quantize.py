@@ -9,6 +9,7 @@ saturation, so ``segmentation.precision: auto`` runs int8 only where the CPU has
 from __future__ import annotations
 
 import contextlib
+import copy
 import hashlib
 import json
 import logging
@@ -151,12 +152,14 @@ def _merge(a: dict, b: dict) -> dict:
     """Two ORT MinMax range caches as one: per tensor the lower lowest and the higher highest."""
     if not a:
         return b
-    out = json.loads(json.dumps(a))
+    out = copy.deepcopy(a)
     for name, rb in b["data"].items():
-        ra = out["data"].setdefault(name, rb)
-        if ra is not rb:
-            ra["lowest"] = _reduce(ra["lowest"], rb["lowest"], np.minimum)
-            ra["highest"] = _reduce(ra["highest"], rb["highest"], np.maximum)
+        if name not in out["data"]:
+            out["data"][name] = rb
+            continue
+        ra = out["data"][name]
+        ra["lowest"] = _reduce(ra["lowest"], rb["lowest"], np.minimum)
+        ra["highest"] = _reduce(ra["highest"], rb["highest"], np.maximum)
     return out
 
 
