@@ -84,3 +84,20 @@ def test_deskew_thins_the_planes_of_a_fast_turning_robot(tmp_path, sensor):
         cpv[mode] = np.nanmedian([w["cpv"] for w in res.windows])
         assert (res.summary["counters"]["scans_deskewed"] > 0) == (mode == "auto")
     assert cpv["auto"] < 0.7 * cpv["off"], cpv
+
+
+def test_points_sharing_a_firing_time_move_as_if_each_were_computed_alone():
+    """deskew computes the motion once per distinct time (a cache on the time's bits): an Ouster-like sweep
+    (row-major, 64 rows x 2048 columns: every time recurs 2048 points later, more times than cache slots)
+    gives what the interpolation written plainly per point gives."""
+    rng = np.random.default_rng(3)
+    rows, cols = 64, 2048
+    times = np.tile(np.arange(cols, dtype=np.float32) * np.float32(0.1 / cols), rows)  # as ouster-ros' t, in s
+    pts = rng.uniform(-30, 30, (rows * cols, 3)).astype(np.float32)
+    motion = sweep_motion(_moving, 100.0, 0.0, 0.1)
+    r = np.stack([np.interp(times, motion.times, motion.rotvecs[:, k]) for k in range(3)], 1)
+    t = np.stack([np.interp(times, motion.times, motion.translations[:, k]) for k in range(3)], 1)
+    plain = np.einsum("nij,nj->ni", geometry.rotvec_to_matrix(r), pts.astype(np.float64)) + t
+    np.testing.assert_allclose(deskew(pts, times, motion), plain, atol=2e-5)  # float32 points 50 m out
+    shuffled = rng.permutation(len(pts))  # any order: the same result per point
+    np.testing.assert_array_equal(deskew(pts[shuffled], times[shuffled], motion), deskew(pts, times, motion)[shuffled])

@@ -300,6 +300,44 @@ def test_plane_extent_of_a_square_does_not_depend_on_the_principal_axes():
         np.testing.assert_allclose(plane.box(np.eye(4))[2], [3.0, 3.0], atol=0.03)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_min_area_rectangle_holds_every_point_and_is_no_bigger_than_any_turned_box(seed):
+    """Random point sets (a blob, a thin strip, an L, 4 points, a dense parallelogram, 3 points): the
+    rectangle holds every point, its sides are perpendicular, long first, and no box at any of 3600 angles
+    is smaller (the rectangle is exact: a side along a hull edge)."""
+    from topometric_ros.planes import min_area_rectangle
+
+    rng = np.random.default_rng(seed)
+    shapes = [rng.normal(size=(3000, 2)) * [3.0, 1.0], rng.uniform(-1, 1, (50, 2)) * [5.0, 0.01],
+              np.vstack([rng.uniform(0, 1, (800, 2)) * [4, 1], rng.uniform(0, 1, (800, 2)) * [1, 3]]),
+              rng.uniform(-2, 2, (4, 2)), rng.uniform(-1, 1, (20000, 2)) @ [[1.0, 0.3], [0.0, 1.0]],
+              rng.uniform(-1, 1, (3, 2))]
+    xy = shapes[seed] @ Rotation.from_euler("z", rng.uniform(0, 360), degrees=True).as_matrix()[:2, :2] + [7, -2]
+    centre, half = min_area_rectangle(xy)
+    size = np.linalg.norm(half, axis=0)
+    axes = half / np.where(size > 0, size, 1.0)
+    assert np.all(np.abs((xy - centre) @ axes) <= size + 1e-9)  # every point inside
+    assert abs(axes[:, 0] @ axes[:, 1]) <= 1e-9 and size[0] >= size[1]
+    angles = np.radians(np.arange(3600) / 20)  # 0.05° steps over 180°
+    u = np.stack([np.cos(angles), np.sin(angles)], 1)
+    pu, pv = xy @ u.T, xy @ np.stack([-u[:, 1], u[:, 0]], 1).T
+    best = ((pu.max(0) - pu.min(0)) * (pv.max(0) - pv.min(0))).min()
+    assert 4 * size[0] * size[1] <= best * (1 + 1e-9)
+
+
+def test_min_area_rectangle_of_degenerate_points():
+    """One point repeated: that point, no size. Points on a line: the segment, zero width."""
+    from topometric_ros.planes import min_area_rectangle
+
+    centre, half = min_area_rectangle(np.tile([[2.0, -1.0]], (5, 1)))
+    np.testing.assert_array_equal(centre, [2.0, -1.0])
+    np.testing.assert_array_equal(half, np.zeros((2, 2)))
+    t = np.random.default_rng(0).uniform(-3, 1, 40)
+    centre, half = min_area_rectangle(np.stack([1 + 0.6 * t, 2 + 0.8 * t], 1))
+    np.testing.assert_allclose(centre, [1 + 0.6 * (t.max() + t.min()) / 2, 2 + 0.8 * (t.max() + t.min()) / 2])
+    np.testing.assert_allclose(np.linalg.norm(half, axis=0), [(t.max() - t.min()) / 2, 0.0], atol=1e-12)
+
+
 @pytest.mark.parametrize("m", [2, 4])
 def test_quadtree_levels_sum_the_moments_of_their_blocks(m):
     """planes._pool: each coarse cell holds the sums over its m × m block of fine cells, and nothing else."""

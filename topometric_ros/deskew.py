@@ -90,32 +90,56 @@ def deskew(points: np.ndarray, times: np.ndarray, motion: SweepMotion) -> np.nda
     interpolated between the knots (rotation vector and translation, linearly; times outside the knots take
     the end knots). One pass in a numba kernel, in float64, stored as float32 like the points."""
     out = np.empty((len(points), 3), np.float32)
-    _deskew(np.asarray(points, np.float32), np.asarray(times, np.float64), np.asarray(motion.times, np.float64),
+    t = np.ascontiguousarray(times, np.float64)
+    _deskew(np.asarray(points, np.float32), t, t.view(np.uint64), np.asarray(motion.times, np.float64),
             np.asarray(motion.rotvecs, np.float64), np.asarray(motion.translations, np.float64), out)
     return out
 
 
+_CACHE_BITS = 12  # the motion at up to 4096 distinct point times kept (a sweep has ~1000-4000)
+
+
 @numba.njit(cache=True, nogil=True)
-def _deskew(points, times, knots, rotvecs, translations, out):
-    """out[i] = R(t_i) p_i + T(t_i), Rodrigues with the rotation vector interpolated at t_i (see deskew)."""
+def _motion_at(t, knots, rotvecs, translations, into):
+    """into[:] = (unit rotation axis (3), cos, sin, translation (3)) at time t, the rotation vector and
+    translation interpolated linearly between the knots (times outside take the end knots)."""
     last = len(knots) - 1
+    t = min(max(t, knots[0]), knots[last])
+    k = 0
+    while k < last - 1 and knots[k + 1] <= t:
+        k += 1
+    dt = knots[k + 1] - knots[k]
+    a = (t - knots[k]) / dt if dt > 0 else 0.0
+    b = 1.0 - a
+    rx = b * rotvecs[k, 0] + a * rotvecs[k + 1, 0]
+    ry = b * rotvecs[k, 1] + a * rotvecs[k + 1, 1]
+    rz = b * rotvecs[k, 2] + a * rotvecs[k + 1, 2]
+    theta = np.sqrt(rx * rx + ry * ry + rz * rz)
+    inv = 1.0 / max(theta, 1e-12)
+    into[0], into[1], into[2] = rx * inv, ry * inv, rz * inv
+    into[3], into[4] = np.cos(theta), np.sin(theta)
+    for j in range(3):
+        into[5 + j] = b * translations[k, j] + a * translations[k + 1, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _deskew(points, times, time_bits, knots, rotvecs, translations, out):
+    """out[i] = R(t_i) p_i + T(t_i), Rodrigues (see deskew). Points share their firing's time (an Ouster column,
+    a Velodyne firing), so the motion is computed once per distinct time: a direct-mapped cache on the time's
+    bits (a collision only recomputes)."""
+    size = 1 << _CACHE_BITS
+    cached = np.full(size, np.nan)
+    motion = np.empty((size, 8))
     for i in range(len(points)):
-        t = min(max(times[i], knots[0]), knots[last])
-        k = 0
-        while k < last - 1 and knots[k + 1] <= t:
-            k += 1
-        dt = knots[k + 1] - knots[k]
-        a = (t - knots[k]) / dt if dt > 0 else 0.0
-        b = 1.0 - a
-        rx = b * rotvecs[k, 0] + a * rotvecs[k + 1, 0]
-        ry = b * rotvecs[k, 1] + a * rotvecs[k + 1, 1]
-        rz = b * rotvecs[k, 2] + a * rotvecs[k + 1, 2]
-        theta = np.sqrt(rx * rx + ry * ry + rz * rz)
-        inv = 1.0 / max(theta, 1e-12)
-        kx, ky, kz = rx * inv, ry * inv, rz * inv
-        c, s = np.cos(theta), np.sin(theta)
+        h = np.uint64(time_bits[i] ^ (time_bits[i] >> np.uint64(29))) * np.uint64(0x9E3779B97F4A7C15)
+        slot = np.int64(h >> np.uint64(64 - _CACHE_BITS))
+        if cached[slot] != times[i]:  # NaN never equals: a NaN time is computed every time
+            _motion_at(times[i], knots, rotvecs, translations, motion[slot])
+            cached[slot] = times[i]
+        m = motion[slot]
+        kx, ky, kz, c, s = m[0], m[1], m[2], m[3], m[4]
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         dot = (kx * px + ky * py + kz * pz) * (1.0 - c)
-        out[i, 0] = px * c + (ky * pz - kz * py) * s + kx * dot + b * translations[k, 0] + a * translations[k + 1, 0]
-        out[i, 1] = py * c + (kz * px - kx * pz) * s + ky * dot + b * translations[k, 1] + a * translations[k + 1, 1]
-        out[i, 2] = pz * c + (kx * py - ky * px) * s + kz * dot + b * translations[k, 2] + a * translations[k + 1, 2]
+        out[i, 0] = px * c + (ky * pz - kz * py) * s + kx * dot + m[5]
+        out[i, 1] = py * c + (kz * px - kx * pz) * s + ky * dot + m[6]
+        out[i, 2] = pz * c + (kx * py - ky * px) * s + kz * dot + m[7]

@@ -9,7 +9,7 @@ Detection (:func:`detect_planes`), per static class, two detectors (config.plane
   that keeps the coarsest planar tile, region growing over neighbouring tiles that agree, merging of
   coplanar segments; every point to the nearest plane of its own or a neighbouring tile. Vectorised numpy,
   with numba kernels where a loop over points or cells is faster (moments, the quadtree's block sums, the
-  nearest plane of each point, a plane's mean and scatter).
+  nearest plane of each point, a plane's fit and its smallest rectangle).
 - ``open3d``: ``PointCloud.detect_planar_patches`` (Araújo & Oliveira 2020, the paper's detector) on each
   class, points in each patch box, coplanar patches of one surface merged.
 Both then split near-vertical planes at openings the scan sees through (doors: coplanar wall pieces
@@ -83,19 +83,36 @@ def _fit_plane(points: np.ndarray, cls: int, frame: int, max_sample: int) -> tup
     """(fit_plane's plane, the eigenvalues (3,) ascending of its scatter matrix)."""
     if len(points) < 3:
         raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
-    xyz = np.ascontiguousarray(points, np.float64)
-    mean, scatter = _mean_scatter(xyz)
-    lam, vecs = np.linalg.eigh(scatter)
-    normal = vecs[:, 0]
+    pts = np.ascontiguousarray(points)
+    if pts.dtype not in (np.float32, np.float64):
+        pts = pts.astype(np.float64)
+    mean, scatter, lam, vecs, extent = _fit_kernel(pts, _OCTAGON)
+    normal = vecs[:, 0].copy()
     offset = -float(normal @ mean)
     if offset < 0:  # sensor origin on the positive side: n·0 + d > 0
         normal, offset = -normal, -offset
     sample = points[::-(-len(points) // max_sample)]  # evenly spread over the inliers (scan order)
-    basis = vecs[:, [2, 1]]  # in-plane principal axes
-    c2, half2 = min_area_rectangle(_in_plane(xyz, mean, basis))
-    extent = np.vstack([mean + basis @ c2, (basis @ half2).T])
     plane = Plane(int(cls), normal, offset, len(points), mean, scatter, np.asarray(sample, np.float32), frame, extent)
     return plane, lam
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_kernel(points, octagon):
+    """Least squares and extent of (K, 3) points, in float64: (mean (3,), scatter (3, 3), its eigenvalues (3,)
+    ascending and eigenvectors (3, 3) as columns, the extent (3, 3) of Plane: the min_area_rectangle of the
+    points in the plane of the two largest principal axes)."""
+    xyz = points.astype(np.float64)
+    mean, scatter = _mean_scatter(xyz)
+    lam, vecs = np.linalg.eigh(scatter)
+    basis = np.empty((3, 2))  # in-plane principal axes, the longest first
+    basis[:, 0], basis[:, 1] = vecs[:, 2], vecs[:, 1]
+    centre, half = _rectangle(_in_plane(xyz, mean, basis), octagon)
+    extent = np.empty((3, 3))
+    for a in range(3):
+        extent[0, a] = mean[a] + basis[a, 0] * centre[0] + basis[a, 1] * centre[1]
+        for side in range(2):
+            extent[1 + side, a] = basis[a, 0] * half[0, side] + basis[a, 1] * half[1, side]
+    return mean, scatter, lam, vecs, extent
 
 
 @numba.njit(cache=True, nogil=True)
@@ -130,61 +147,131 @@ def _in_plane(points, mean, basis):
     return out
 
 
-def min_area_rectangle(xy: np.ndarray, directions: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest-area rectangle holding (K, 2) points: (centre (2,), half sides (2, 2) as columns, long first).
-
-    Rotating calipers on the polygon of the points' extremes in ``directions`` evenly spaced directions (hull
-    vertices, counter-clockwise): exact for polygonal outlines whose corners span more than 360°/directions;
-    otherwise a side can be short by at most 1 − cos(180°/directions) of the farthest point's distance
-    (1.2 mm per m at 64). Points strictly inside the octagon of 8 such extremes are dropped first
-    (Akl–Toussaint), so most of a plane's inliers cost one small product. Collinear points: zero width."""
-    if len(xy) > 1000:
-        xy = _outer_points(xy, 8)
-    hull = _extremes(xy, directions)
-    u = _cyclic(hull, 1) - hull
-    length = np.sqrt(u[:, 0] ** 2 + u[:, 1] ** 2)
-    edge = length > 0
-    if not edge.any():
-        return hull[0].astype(np.float64), np.zeros((2, 2))
-    u = u[edge] / length[edge, None]
-    v = u[:, ::-1] * [-1.0, 1.0]  # u turned by +90°
-    pu, pv = hull @ u.T, hull @ v.T  # (hull points, edge directions)
-    lo_u, hi_u, lo_v, hi_v = pu.min(axis=0), pu.max(axis=0), pv.min(axis=0), pv.max(axis=0)
-    k = int(np.argmin((hi_u - lo_u) * (hi_v - lo_v)))
-    halves = np.column_stack([u[k] * (hi_u[k] - lo_u[k]) / 2, v[k] * (hi_v[k] - lo_v[k]) / 2])
-    if np.linalg.norm(halves[:, 1]) > np.linalg.norm(halves[:, 0]):
-        halves = halves[:, ::-1]
-    return u[k] * ((lo_u[k] + hi_u[k]) / 2) + v[k] * ((lo_v[k] + hi_v[k]) / 2), halves
+def min_area_rectangle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest-area rectangle holding (K >= 1, 2) points: (centre (2,), half sides (2, 2) as columns, long
+    first). Exact: rotating calipers over the edges of the points' convex hull (the smallest rectangle has a
+    side along one of them, Freeman & Shapira 1975). Points strictly inside the octagon of the extremes in 8
+    directions are dropped first (Akl–Toussaint: they are on no hull), so most of a plane's inliers cost 8
+    small products. Collinear points: zero width. One numba kernel (_rectangle)."""
+    xy = np.ascontiguousarray(xy, np.float64).reshape(-1, 2)
+    if len(xy) == 0:
+        raise ValueError("a rectangle needs at least one point")
+    return _rectangle(xy, _OCTAGON)
 
 
-def _cyclic(a: np.ndarray, k: int) -> np.ndarray:
-    """Row i + k of ``a`` in row i, cyclically: np.roll(a, -k, axis=0) without its overhead."""
-    return np.concatenate([a[k:], a[:k]])
+_OCTAGON = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], 1)  # unit directions
 
 
-def _extremes(xy: np.ndarray, directions: int) -> np.ndarray:
-    """The points farthest along ``directions`` evenly spaced directions, counter-clockwise, no repeats."""
-    if directions not in _DIRECTIONS:
-        angles = np.arange(directions) * (2 * np.pi / directions)
-        _DIRECTIONS[directions] = np.stack([np.cos(angles), np.sin(angles)], 1)
-    idx = (_DIRECTIONS[directions] @ xy.T).argmax(axis=1)
-    keep = idx != _cyclic(idx, -1)
-    return xy[idx[keep]] if keep.any() else xy[idx[:1]]
+@numba.njit(cache=True, nogil=True)
+def _rectangle(xy, octagon):
+    """min_area_rectangle of (K >= 1, 2) float64 points, with the (8, 2) unit directions of the octagon."""
+    hull = _convex_hull(_outside(xy, _extremes(xy, octagon)))
+    h = len(hull)
+    best, best_k = np.inf, -1
+    bu = np.zeros(2)
+    lo_u = hi_u = lo_v = hi_v = 0.0
+    for k in range(h):
+        ux, uy = hull[(k + 1) % h, 0] - hull[k, 0], hull[(k + 1) % h, 1] - hull[k, 1]
+        length = np.sqrt(ux * ux + uy * uy)
+        if length <= 0:
+            continue
+        ux, uy = ux / length, uy / length
+        a_lo, a_hi, b_lo, b_hi = np.inf, -np.inf, np.inf, -np.inf
+        for i in range(h):
+            pu = hull[i, 0] * ux + hull[i, 1] * uy
+            pv = hull[i, 0] * -uy + hull[i, 1] * ux  # along u turned by +90°
+            a_lo, a_hi, b_lo, b_hi = min(a_lo, pu), max(a_hi, pu), min(b_lo, pv), max(b_hi, pv)
+        area = (a_hi - a_lo) * (b_hi - b_lo)
+        if area < best:
+            best, best_k = area, k
+            bu[0], bu[1] = ux, uy
+            lo_u, hi_u, lo_v, hi_v = a_lo, a_hi, b_lo, b_hi
+    halves = np.zeros((2, 2))
+    if best_k < 0:  # every point the same
+        return hull[0].copy(), halves
+    vx, vy = -bu[1], bu[0]
+    halves[0, 0], halves[1, 0] = bu[0] * (hi_u - lo_u) / 2, bu[1] * (hi_u - lo_u) / 2
+    halves[0, 1], halves[1, 1] = vx * (hi_v - lo_v) / 2, vy * (hi_v - lo_v) / 2
+    if hi_v - lo_v > hi_u - lo_u:
+        halves = halves[:, ::-1].copy()
+    cu, cv = (lo_u + hi_u) / 2, (lo_v + hi_v) / 2
+    return np.array([bu[0] * cu + vx * cv, bu[1] * cu + vy * cv]), halves
 
 
-_DIRECTIONS: dict[int, np.ndarray] = {}
+@numba.njit(cache=True, nogil=True)
+def _convex_hull(xy):
+    """Corners of the convex hull of (K >= 1, 2) points, counter-clockwise, no collinear or repeated corners
+    (Andrew's monotone chain; all points the same: one corner)."""
+    order = np.argsort(xy[:, 1], kind="mergesort")
+    order = order[np.argsort(xy[order, 0], kind="mergesort")]  # by x, then y (both sorts stable)
+    p = xy[order]
+    n = len(p)
+    hull = np.empty((2 * n, 2))
+    k = 0
+    for i in range(n):  # lower chain, left to right
+        while k >= 2 and _turn(hull[k - 2], hull[k - 1], p[i]) <= 0:
+            k -= 1
+        hull[k] = p[i]
+        k += 1
+    lower = k + 1
+    for i in range(n - 2, -1, -1):  # upper chain, right to left
+        while k >= lower and _turn(hull[k - 2], hull[k - 1], p[i]) <= 0:
+            k -= 1
+        hull[k] = p[i]
+        k += 1
+    return hull[:max(k - 1, 1)]  # the last corner is the first again
 
 
-def _outer_points(xy: np.ndarray, directions: int) -> np.ndarray:
-    """The points not strictly inside the polygon of the extremes in ``directions`` directions (a superset
-    of the convex hull's vertices)."""
-    poly = _extremes(xy, directions)
-    if len(poly) < 3:
+@numba.njit(cache=True, nogil=True, inline="always")
+def _turn(a, b, c):
+    """(b − a) × (c − a): > 0 when a, b, c turn counter-clockwise."""
+    return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+
+@numba.njit(cache=True, nogil=True)
+def _extremes(xy, directions):
+    """The points of (K, 2) ``xy`` farthest along each of the (D, 2) ``directions`` (counter-clockwise; the
+    first of equals), consecutive repeats dropped (cyclically): the polygon of the extremes, (<= D, 2)."""
+    d = len(directions)
+    idx = np.zeros(d, np.int64)
+    far = np.full(d, -np.inf)
+    for i in range(len(xy)):
+        x, y = xy[i, 0], xy[i, 1]
+        for k in range(d):
+            t = directions[k, 0] * x + directions[k, 1] * y
+            if t > far[k]:
+                far[k], idx[k] = t, i
+    keep = np.empty(d, np.bool_)
+    for k in range(d):
+        keep[k] = idx[k] != idx[k - 1]
+    if not keep.any():
+        keep[0] = True
+    return xy[idx[keep]]
+
+
+@numba.njit(cache=True, nogil=True)
+def _outside(xy, poly):
+    """The points of (K, 2) ``xy`` not strictly inside the counter-clockwise polygon ``poly`` (all of them when
+    it has fewer than 3 corners): a superset of the convex hull's vertices when poly's corners are points."""
+    m = len(poly)
+    if m < 3:
         return xy
-    edge = _cyclic(poly, 1) - poly
-    left = edge[:, ::-1] * [-1.0, 1.0]  # inward normals of a counter-clockwise polygon
-    inside = np.all(left @ xy.T > (left * poly).sum(1)[:, None] + 1e-9, axis=0)
-    return xy.compress(~inside, axis=0)
+    inward = np.empty((m, 2))  # each edge's inward normal (the edge turned by +90°) and its offset
+    level = np.empty(m)
+    for k in range(m):
+        ex, ey = poly[(k + 1) % m, 0] - poly[k, 0], poly[(k + 1) % m, 1] - poly[k, 1]
+        inward[k, 0], inward[k, 1] = -ey, ex
+        level[k] = -ey * poly[k, 0] + ex * poly[k, 1] + 1e-9
+    keep = np.empty(len(xy), np.bool_)
+    for i in range(len(xy)):
+        x, y = xy[i, 0], xy[i, 1]
+        inside = True
+        for k in range(m):
+            if inward[k, 0] * x + inward[k, 1] * y <= level[k]:
+                inside = False
+                break
+        keep[i] = not inside
+    return xy[keep]
 
 
 def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.ndarray, min_points: int = 50,
