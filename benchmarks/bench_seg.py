@@ -116,24 +116,22 @@ def _gpu(results: dict, scans: list) -> None:
     from topometric_ros.segmentation.infer import Segmenter
     from topometric_ros.segmentation.projection import project
 
-    gpu = Segmenter.from_config(SegmentationConfig(device="cuda"))
-    big = [scans[i % len(scans)] for i in range(64)]
-    gpu.predict_batch(big)
-    torch.cuda.synchronize()
-    t = time.perf_counter()
-    for _ in range(5):
-        gpu.predict_batch(big)
-    torch.cuda.synchronize()
-    results["gpu_batch64_scans_per_s"] = round(5 * 64 / (time.perf_counter() - t), 1)
-    xs = torch.from_numpy(np.stack([project(*s)[0] for s in big])).cuda()
-    with torch.inference_mode():
-        gpu.model(xs)
+    def scans_per_s(run, repeats: int, batch: int) -> float:
+        """Scans per second of ``run`` (one batch of ``batch`` scans) after a warm-up, GPU work waited for."""
+        run()
         torch.cuda.synchronize()
         t = time.perf_counter()
-        for _ in range(20):
-            gpu.model(xs)
+        for _ in range(repeats):
+            run()
         torch.cuda.synchronize()
-    results["gpu_network_only_batch64_scans_per_s"] = round(20 * 64 / (time.perf_counter() - t), 1)
+        return round(repeats * batch / (time.perf_counter() - t), 1)
+
+    gpu = Segmenter.from_config(SegmentationConfig(device="cuda"))
+    big = [scans[i % len(scans)] for i in range(64)]
+    results["gpu_batch64_scans_per_s"] = scans_per_s(lambda: gpu.predict_batch(big), 5, 64)
+    xs = torch.from_numpy(np.stack([project(*s)[0] for s in big])).cuda()
+    with torch.inference_mode():
+        results["gpu_network_only_batch64_scans_per_s"] = scans_per_s(lambda: gpu.model(xs), 20, 64)
     results["gpu"] = torch.cuda.get_device_name()
 
 

@@ -85,6 +85,15 @@ def _monitor_config(args: argparse.Namespace):
     return load_config(getattr(args, "config", None), over)
 
 
+def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
+    """The topics of a bag replay (``whose``: "the bag's" or "each bag's") and --quiet."""
+    p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": {whose} only one, else /points)")
+    p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": {whose} "
+                                                    "only one besides --gt-topic, else /odom)")
+    p.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None) -> None:
     from .config import Config
 
@@ -506,12 +515,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--rate", default="max", help="max (every window processed), realtime, or a speed factor")
-    r.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one, else /points)")
-    r.add_argument("--odom-topic", default="", help="nav_msgs/Odometry topic of the SLAM estimate (\"\": the "
-                                                    "bag's only one besides --gt-topic, else /odom)")
-    r.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
+    _add_topic_args(r, "the bag's")
     r.add_argument("--no-plot", action="store_true", help="no metrics.png")
-    r.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
 
@@ -529,10 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "start --head`; or 'auto') instead of starting a local Ray")
     au.add_argument("--force", action="store_true", help="replay every bag again (without it: cached results "
                                                          "whose bag, config and weights digests are unchanged are kept)")
-    au.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": each bag's only one, else /points)")
-    au.add_argument("--odom-topic", default="", help="SLAM odometry topic (\"\": each bag's only one, else /odom)")
-    au.add_argument("--gt-topic", default="", help="ground-truth odometry for RPE (\"\": replay's default, /odom_gt)")
-    au.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_topic_args(au, "each bag's")
     _add_monitor_args(au)
     au.set_defaults(func=cmd_audit)
 

@@ -6,16 +6,9 @@ evaluate.py (``topometric eval-seg``). Names resolve lazily so importing the pac
 """
 from __future__ import annotations
 
-import importlib
+from .._lazy import lazy_exports
 
 _EXPORTS = {"Segmenter": "infer", "SegmentationError": "checkpoint", "SHIPPED": "checkpoint", "segment_frame": "infer"}
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
-
-
-__all__ = list(_EXPORTS)
+__getattr__, __all__ = lazy_exports(__name__, _EXPORTS)
