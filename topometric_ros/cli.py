@@ -141,8 +141,10 @@ def cmd_audit(args: argparse.Namespace) -> int:
     if not bags:
         print("error: no bag found", file=sys.stderr)
         return 2
-    options = {k: v for k, v in (("points_topic", args.points_topic), ("odom_topic", args.odom_topic),
-                                 ("gt_topic", args.gt_topic)) if v}
+    from .replay import ReplayOptions
+
+    given = (("points_topic", args.points_topic), ("odom_topic", args.odom_topic), ("gt_topic", args.gt_topic))
+    options = {k: v for k, v in given if v and v != getattr(ReplayOptions, k)}  # defaults left out of the cache key
     try:
         res = audit(bags, args.out, _monitor_config(args), engine=args.engine, workers=args.workers,
                     address=args.address or None, options=options, force=args.force, progress=not args.quiet)
