@@ -88,7 +88,7 @@ def test_deskew_thins_the_planes_of_a_fast_turning_robot(tmp_path, sensor):
 
 def test_points_sharing_a_firing_time_move_as_if_each_were_computed_alone():
     """deskew computes the motion once per distinct time (a cache on the time's bits): an Ouster-like sweep
-    (row-major, 64 rows x 2048 columns: every time recurs 2048 points later, more times than cache slots)
+    (row-major, 64 rows x 2048 columns: every time recurs 2048 points later, and times collide in its slots)
     gives what the interpolation written plainly per point gives."""
     rng = np.random.default_rng(3)
     rows, cols = 64, 2048

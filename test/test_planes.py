@@ -326,7 +326,8 @@ def test_min_area_rectangle_holds_every_point_and_is_no_bigger_than_any_turned_b
 
 
 def test_min_area_rectangle_of_degenerate_points():
-    """One point repeated: that point, no size. Points on a line: the segment, zero width."""
+    """One point repeated: that point, no size. Points on a line: the segment, zero width. No points, or
+    points that are not (K, 2): an error, not a rectangle of reshaped numbers."""
     from topometric_ros.planes import min_area_rectangle
 
     centre, half = min_area_rectangle(np.tile([[2.0, -1.0]], (5, 1)))
@@ -336,6 +337,9 @@ def test_min_area_rectangle_of_degenerate_points():
     centre, half = min_area_rectangle(np.stack([1 + 0.6 * t, 2 + 0.8 * t], 1))
     np.testing.assert_allclose(centre, [1 + 0.6 * (t.max() + t.min()) / 2, 2 + 0.8 * (t.max() + t.min()) / 2])
     np.testing.assert_allclose(np.linalg.norm(half, axis=0), [(t.max() - t.min()) / 2, 0.0], atol=1e-12)
+    for bad in (np.zeros((0, 2)), np.ones((40, 3)), np.ones((2, 40))):
+        with pytest.raises(ValueError, match="rectangle needs"):
+            min_area_rectangle(bad)
 
 
 @pytest.mark.parametrize("m", [2, 4])

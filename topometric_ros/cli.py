@@ -90,7 +90,8 @@ def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
     p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": {whose} only one, else /points)")
     p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": {whose} "
                                                     "only one besides --gt-topic, else /odom)")
-    p.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it")
+    p.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it "
+                                                          "(\"\": none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -144,7 +145,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
     from .replay import ReplayOptions
 
     given = (("points_topic", args.points_topic), ("odom_topic", args.odom_topic), ("gt_topic", args.gt_topic))
-    options = {k: v for k, v in given if v and v != getattr(ReplayOptions, k)}  # defaults left out of the cache key
+    options = {k: v for k, v in given if v != getattr(ReplayOptions, k)}  # defaults left out of the cache key
     try:
         res = audit(bags, args.out, _monitor_config(args), engine=args.engine, workers=args.workers,
                     address=args.address or None, options=options, force=args.force, progress=not args.quiet)

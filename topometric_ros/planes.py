@@ -149,13 +149,13 @@ def _in_plane(points, mean, basis):
 
 def min_area_rectangle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest-area rectangle holding (K >= 1, 2) points: (centre (2,), half sides (2, 2) as columns, long
-    first). Exact: rotating calipers over the edges of the points' convex hull (the smallest rectangle has a
-    side along one of them, Freeman & Shapira 1975). Points strictly inside the octagon of the extremes in 8
-    directions are dropped first (Akl–Toussaint: they are on no hull), so most of a plane's inliers cost 8
-    small products. Collinear points: zero width. One numba kernel (_rectangle)."""
-    xy = np.ascontiguousarray(xy, np.float64).reshape(-1, 2)
-    if len(xy) == 0:
-        raise ValueError("a rectangle needs at least one point")
+    first). Exact: the smallest rectangle has a side along an edge of the points' convex hull (Freeman &
+    Shapira 1975), so each hull edge's box is measured over the hull's corners. Points strictly inside the
+    octagon of the extremes in 8 directions are dropped first (Akl–Toussaint: they are on no hull), so most
+    of a plane's inliers cost 8 small products. Collinear points: zero width. One numba kernel (_rectangle)."""
+    xy = np.ascontiguousarray(xy, np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) == 0:
+        raise ValueError(f"a rectangle needs (K >= 1, 2) points, got shape {xy.shape}")
     return _rectangle(xy, _OCTAGON)
 
 
@@ -200,8 +200,8 @@ def _rectangle(xy, octagon):
 
 @numba.njit(cache=True, nogil=True)
 def _convex_hull(xy):
-    """Corners of the convex hull of (K >= 1, 2) points, counter-clockwise, no collinear or repeated corners
-    (Andrew's monotone chain; all points the same: one corner)."""
+    """Corners of the convex hull of (K >= 1, 2) points, counter-clockwise, without collinear corners
+    (Andrew's monotone chain; all points the same: one or two equal corners)."""
     order = np.argsort(xy[:, 1], kind="mergesort")
     order = order[np.argsort(xy[order, 0], kind="mergesort")]  # by x, then y (both sorts stable)
     p = xy[order]
