@@ -67,6 +67,25 @@ def test_the_monitor_waits_for_odometry_past_the_sweep_before_it_deskews():
     assert off.counters["scans_deskewed"] == 0 and off.counters["scans_processed"] == 1
 
 
+def test_scans_waiting_for_odometry_that_stopped_are_released_once_it_is_stale():
+    """The last scans of a stream wait for odometry past their sweep; when the odometry has stopped for
+    health.stale_after_s (receive clock) they are scored with what came (the last motion continued over
+    their sweep), not held: nothing waits unseen. Before that, nothing is released."""
+    cfg = load_config(overrides={"segmentation.mode": "none", "window.size": 2, "health.stale_after_s": 3.0})
+    m = Monitor(cfg)
+    pts = np.random.default_rng(4).uniform(-5, 5, (2000, 3)).astype(np.float32)
+    times = np.linspace(0.0, 0.1, 2000)
+    for k in range(3):
+        m.add_pose(10.0 + 0.1 * k, geometry.make_pose(np.eye(3), [0.15 * k, 0, 0]), received=100.0 + 0.1 * k)
+    m.add_scan(10.0, pts, time=times, received=100.05)
+    m.add_scan(10.2, pts, time=times, received=100.25)  # its sweep runs to 10.3: the odometry ends at 10.2
+    assert m.pending_length == 1 and m.counters["scans_processed"] == 1
+    assert m.release_waiting(102.0) == 0 and m.pending_length == 1  # 1.8 s without odometry: not yet stale
+    assert m.release_waiting(104.0) == 1 and m.pending_length == 0
+    assert m.counters["scans_processed"] == 2 and m.counters["scans_deskewed"] == 2
+    assert m.counters["windows"] == 1 and m.counters["dropped_scans"] == 0
+
+
 @pytest.mark.parametrize("sensor", ["VLP-16", "OS1-64", "HDL-64E"])
 def test_deskew_thins_the_planes_of_a_fast_turning_robot(tmp_path, sensor):
     """A drift-free bag at 2 m/s with 90 °/s turns: CPV (plane thickness across scans) is smaller with deskew

@@ -478,6 +478,90 @@ def test_markers_have_the_true_plane_extents_in_the_map_frame(ros_env, tmp_path)
         listener.close()
 
 
+def _real_bag_with_poses() -> Path | None:
+    """../shared/real-sensors' OS1-128 capture with poses (3 scans, KISS-ICP /odom, /tf_static), if here."""
+    for root in (os.environ.get("TOPOMETRIC_REAL_SENSORS", ""), ROOT.parent / "shared" / "real-sensors",
+                 "/work/shared/real-sensors"):
+        if root and (Path(root) / "os1_128_lowbw_3scans_poses" / "metadata.yaml").is_file():
+            return Path(root) / "os1_128_lowbw_3scans_poses"
+    return None
+
+
+BIG_BUFFERS = 64 * 2 ** 20  # bytes: DDS socket buffers for 6 MB clouds (docs/ros.md, "Big clouds")
+
+
+def _rmem_max() -> int:
+    try:
+        return int(Path("/proc/sys/net/core/rmem_max").read_text())
+    except (OSError, ValueError):
+        return 0
+
+
+@pytest.mark.skipif(_real_bag_with_poses() is None, reason="no ../shared/real-sensors (set TOPOMETRIC_REAL_SENSORS)")
+@pytest.mark.skipif(_rmem_max() < BIG_BUFFERS, reason="net.core.rmem_max below 64 MB: 6 MB clouds cannot arrive "
+                                                      "over DDS (docs/ros.md: sudo sysctl -w net.core.rmem_max=67108864)")
+def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_path):
+    """A real OS1-128 capture (ouster-ros layout: 128 x 1024 organised, NaN no-returns, per-point t; 6 MB a
+    cloud) played over Cyclone DDS with the bigger socket buffers docs/ros.md gives, to the node in the default
+    mode (network segmentation, layout read off each cloud, deskew): its 3 scans make one window, scored, with
+    none lost and the extrinsic from /tf_static."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    dds = {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp", "CYCLONEDDS_URI": (
+        f'<CycloneDDS><Domain id="any"><Internal><SocketReceiveBufferSize min="{BIG_BUFFERS}B"/></Internal>'
+        "</Domain></CycloneDDS>")}
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    f = write_params(tmp_path / "node.yaml", {"window.size": 3, "points_topic": "/ouster/points", "odom_topic": "/odom"})
+    node = Proc([sys.executable, "-m", "topometric_ros.node", "--ros-args", "--params-file", str(f)], tmp_path,
+                "node", env=dds)
+    player = None
+    try:
+        listener.wait_for("/diagnostics", has_status(CONSISTENCY), 60, node)  # the node is up
+        player = Proc([sys.executable, str(PLAYER), str(_real_bag_with_poses()), "--rate", "0.5",
+                       "--wait-subscribers", "30", "--topics", "/ouster/points", "/odom", "/tf_static"],
+                      tmp_path, "player", env=dds)
+        player.popen.wait(60)
+        got = listener.wait_for("/diagnostics", lambda a: any(
+            s.name == CONSISTENCY and "window_end" in values(s) for s in a.status), 30, node)
+        last = statuses(listener)[-1][2] if statuses(listener) else None
+        assert got, f"no window scored: {last and (last.message, values(last))}\n{player.log()[-2000:]}"
+        status = next(s for s in got[1].status if s.name == CONSISTENCY and "window_end" in values(s))
+        v = values(status)
+        assert v["extrinsic"] == "tf_static" and v["windows"] == "1", v
+        assert abs(float(v["window_end"]) - float(v["window_start"]) - 0.2) < 0.01, v  # scans 1-3 of a 10 Hz sweep
+        assert int(v["scans_processed"]) == 3 and int(v["dropped_scans"]) == 0, v
+        assert int(v["n_planes"]) >= 3 * 12, v  # 12-117 planes a scan on these captures (topometric inspect)
+        assert level(status) in ("OK", "WARN"), status.message  # 3 scans at 2.45 m/s, KISS-ICP poses: no ERROR
+    finally:
+        node.stop()
+        if player is not None:
+            player.stop()
+        listener.close()
+
+
+def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
+    """STALE without clouds: the status says the cloud topic has no publisher, and once one is there (a
+    publisher that sends nothing: as if its clouds were lost on the way) that it has one, and where to look."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    node = start_node(tmp_path, {**BASE, "points_topic": "/quiet_points"})
+    try:
+        stale = lambda words: lambda a: any(  # noqa: E731
+            s.name == CONSISTENCY and level(s) == "STALE" and words in s.message for s in a.status)
+        assert listener.wait_for("/diagnostics", stale("/quiet_points has no publisher"), 30, node)
+        listener.node.create_publisher(PointCloud2, "/quiet_points", qos_profile_sensor_data)
+        got = listener.wait_for("/diagnostics", stale("/quiet_points has 1 publisher"), 30, node)
+        assert got, [s.message for _, _, s in statuses(listener)][-3:]
+        message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
+        assert message.startswith("no scans yet") and "socket buffers, docs/ros.md" in message, message
+    finally:
+        node.stop()
+        listener.close()
+
+
 def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, tmp_path):
     """Labels mode on clouds without a label field: every scan fails, scans keep arriving (no STALE). The
     node says ERROR with the reason within 2 s of the first cloud; SIGINT while scans still arrive: exit 0

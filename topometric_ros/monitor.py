@@ -631,6 +631,18 @@ class Monitor:
         with self._cond:
             return self._cond.wait_for(lambda: not any(self._queues) and not any(self._busy), timeout)
 
+    def release_waiting(self, now: float) -> int:
+        """Scans still waiting for odometry when none has arrived for health.stale_after_s before ``now`` (the
+        receive clock) will not get it: resolve them with the odometry there is, as at the end of a bag
+        (processed where it covers them, deskewed with the last motion continued over at most one sweep; else
+        dropped and counted). Returns how many were waiting. Call it from the thread that adds the input."""
+        waiting = len(self._pending)
+        last = self.last_pose_received
+        if waiting and last is not None and now - last > self.config.health.stale_after_s:
+            self._resolve_pending(final=True)
+            return waiting
+        return 0
+
     def stale(self, now: float) -> tuple[str, str] | None:
         """(STALE, reason) when no scan or no odometry arrived for health.stale_after_s before ``now``
         (clock or bag time, the same clock as ``received``), else None."""

@@ -213,7 +213,7 @@ class MonitorNode(Node):
         with self._lock:
             last = self._last_window
         if checked is not None:
-            stat.summary(LEVELS[checked[0]], checked[1])
+            stat.summary(LEVELS[checked[0]], checked[1] + self._lost_clouds_hint(checked))
             values = {**self._monitor_values(), "last_error": self.monitor.last_error}
         elif last is not None:
             stat.summary(LEVELS[last[0]], last[1])
@@ -225,6 +225,17 @@ class MonitorNode(Node):
         for key, value in values.items():
             stat.add(key, value)
         return stat
+
+    def _lost_clouds_hint(self, checked: tuple[str, str]) -> str:
+        """For a STALE without clouds while the cloud topic has publishers: where the clouds may be lost."""
+        if checked[0] != "STALE" or "no scans" not in checked[1]:
+            return ""
+        topic = self.resolve_topic_name(self.p["points_topic"])
+        publishers = self.count_publishers(topic)
+        if not publishers:
+            return f" ({topic} has no publisher)"
+        return (f" ({topic} has {publishers} publisher{'s' * (publishers > 1)}: if it publishes, its clouds are lost "
+                f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md)")
 
     def _monitor_values(self) -> dict:
         """The monitor's counters and where its extrinsic comes from, as status values (no window yet)."""
@@ -263,8 +274,10 @@ class MonitorNode(Node):
         return stat
 
     def _on_check(self) -> None:
-        """Publish at once when STALE / every-scan-failing / a clock fault starts or ends (the Updater repeats it)."""
+        """Publish at once when STALE / every-scan-failing / a clock fault starts or ends (the Updater repeats it);
+        scans still waiting for odometry that stopped are released (Monitor.release_waiting)."""
         now = self._now()
+        self.monitor.release_waiting(now)  # the odometry stopped: scans waiting for it are scored with what came
         checked = self.monitor.check(now), self.monitor.clock_status(now)
         changed = [c and c[0] for c in checked] != [c and c[0] for c in self._checked]
         self._checked = checked
