@@ -286,7 +286,8 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
         odoms = _of_type(topics, bag.ODOMETRY)
         where = (f"{odom} is not in the bag" if odom not in topics else f"no message of {odom} could be read")
         return (f"no odometry: {where} (its Odometry topics: {', '.join(odoms) or 'none'}); the monitor needs the "
-                "SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic")
+                "SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic"
+                + ("" if odoms else "; `topometric inspect` looks at the clouds alone"))
     if c["bad_poses"] >= c["poses_in"]:
         return f"every odometry message of {odom} was invalid; last: {summary['last_monitor_error']}"
     if c["scan_errors"]:
