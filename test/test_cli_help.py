@@ -47,6 +47,22 @@ def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
     assert res.returncode == 2 and "expected a whole number >= 0, got '-1'" in res.stderr
 
 
+def test_counts_that_must_be_positive_are_refused_before_anything_runs():
+    """--frames 0 used to end in an IndexError traceback, --every 0 in a division by zero, --window-size 0
+    in the default window size: each is a one-line error now (exit 2)."""
+    from topometric_ros.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["simulate", "--frames", "1", "--out", "x"]).frames == 1
+    for argv, words in ((["simulate", "--frames", "0", "--out", "x"], "argument --frames: expected a whole number >= 1"),
+                        (["demo", "--frames", "-3"], "argument --frames: expected a whole number >= 1"),
+                        (["inspect", "bag", "--every", "0"], "argument --every: expected a whole number >= 1"),
+                        (["eval-seg", "bag", "--every", "x"], "argument --every: expected a whole number >= 1"),
+                        (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range")):
+        res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv], capture_output=True, text=True)
+        assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)
+
+
 def test_alarms_grid_takes_health_settings_in_their_own_type_and_refuses_others():
     from topometric_ros.cli import build_parser
 

@@ -88,6 +88,18 @@ def test_unknown_mode_is_a_config_error():
         load_config(overrides={"segmentation.mode": "oracle"})
 
 
+@pytest.mark.parametrize("key, value", [("window.size", 0), ("health.stale_after_s", -1.0), ("segmentation.knn", 99)])
+def test_out_of_range_config_values_are_refused_as_the_node_refuses_them(key, value, tmp_path):
+    """Not only the node: load_config (replay, audit, inspect, the Python API) refuses a value outside the
+    range the node's parameter declares (a window of 0 scans used to replay to zero windows, exit 0)."""
+    with pytest.raises(ValueError, match=key.replace(".", r"\.") + ".*out of range"):
+        load_config(overrides={key: value})
+    yaml_file = tmp_path / "c.yaml"
+    yaml_file.write_text(f"{key.split('.')[0]}:\n  {key.split('.')[1]}: {value}\n")
+    with pytest.raises(ValueError, match="out of range"):
+        load_config(yaml_file)
+
+
 def test_voxel_downsampling_thins_the_scan_before_segmentation(frames):
     cfg = load_config(overrides={"segmentation.mode": "labels", "window.voxel_size": 0.2,
                                  "metrics.baselines": True})

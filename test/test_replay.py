@@ -310,6 +310,20 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
     assert "  /odom  nav_msgs/msg/Odometry  " in out  # the bag's topics with their types and counts
 
 
+def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tmp_path, capsys):
+    """Scans processed but no window (3 scans, windows of 5): not a bare "windows 0" but the reason and the
+    option that gives a window; with that option, one window."""
+    bag_path, _ = office_bag
+    rewrite(bag_path, tmp_path / "three", lambda t, m: [(t, m)], scans=3)
+    code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out", capsys, "--segmentation", "labels")
+    assert code == 0 and summary["scans_processed"] == 3 and summary["windows"] == 0, out
+    assert ("note           no window: 3 scans processed, fewer than a window of window.size = 5; replay with "
+            "--window-size 3") in out
+    code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out3", capsys, "--segmentation", "labels",
+                                    "--window-size", "3")
+    assert code == 0 and summary["windows"] == 1 and "no window" not in out, out
+
+
 def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp_path, capsys):
     bag_path, _ = office_bag
     rewrite(bag_path, tmp_path / "short", lambda t, m: [(t, m)], scans=6)

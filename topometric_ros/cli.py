@@ -78,7 +78,7 @@ def _monitor_config(args: argparse.Namespace):
         if not eq:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
         over[key.strip()] = yaml.safe_load(value)
-    if getattr(args, "window_size", None):
+    if getattr(args, "window_size", None) is not None:
         over["window.size"] = args.window_size
     if getattr(args, "segmentation", None):
         over["segmentation.mode"] = args.segmentation
@@ -163,7 +163,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     config = _monitor_config(args)
     segmenter = load_segmenter(config) if config.segmentation.mode == "network" else None
     rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, segmenter,
-                       plot=not args.no_plot)
+                       plot=not args.no_plot, progress=not args.quiet)
     cols = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
     print(f"segmentation {config.segmentation.mode}{network_options(config, getattr(segmenter, 'precision', ''))}; "
           f"sensor {config.sensor.model or 'read off each cloud'}")
@@ -257,15 +257,21 @@ def _ints(text: str) -> tuple:
     return tuple(int(x) for x in text.split(",") if x.strip())
 
 
-def _count(text: str) -> int:
-    """A whole number >= 0 (argparse type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return n
+def _at_least(low: int):
+    """argparse type: a whole number >= ``low``."""
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = low - 1
+        if n < low:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {text!r}")
+        return n
+    parse.__name__ = f"whole number >= {low}"
+    return parse
+
+
+_count, _positive = _at_least(0), _at_least(1)
 
 
 def _words(text: str) -> tuple:
@@ -436,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
-    s.add_argument("--frames", type=int, default=600, help="scans per bag")
+    s.add_argument("--frames", type=_positive, default=600, help="scans per bag")
     s.add_argument("--rate", type=float, default=5.0, help="scans per second (5 or 10)")
     s.add_argument("--odom-rate", type=float, default=20.0, help="odometry messages per second")
     s.add_argument("--speed", type=float, default=1.2, help="robot speed m/s")
@@ -457,8 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-distortion", action="store_true",
                    help="instantaneous sweeps (without it: every firing at its own time along the trajectory)")
     s.add_argument("--split", action="store_true", help="write OUT/train and OUT/test bags for each --scene")
-    s.add_argument("--train", type=int, default=2, help="train trajectories per scene with --split")
-    s.add_argument("--test", type=int, default=1, help="test trajectories per scene with --split")
+    s.add_argument("--train", type=_count, default=2, help="train trajectories per scene with --split")
+    s.add_argument("--test", type=_count, default=1, help="test trajectories per scene with --split")
     s.add_argument("--out", required=True, help="output bag directory (with --split: a parent directory)")
     s.set_defaults(func=cmd_simulate)
 
@@ -466,12 +472,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/train)")
     t.add_argument("--val", nargs="*", default=[], help="validation bags (logged per epoch, never used to pick weights)")
     t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
-    t.add_argument("--epochs", type=int, default=12, help="passes over the crops")
-    t.add_argument("--crops", type=int, default=768, help="random azimuth crops per epoch")
-    t.add_argument("--batch", type=int, default=12, help="crops per optimiser step")
-    t.add_argument("--crop-width", type=int, default=480, help="azimuth columns per crop")
+    t.add_argument("--epochs", type=_positive, default=12, help="passes over the crops")
+    t.add_argument("--crops", type=_positive, default=768, help="random azimuth crops per epoch")
+    t.add_argument("--batch", type=_positive, default=12, help="crops per optimiser step")
+    t.add_argument("--crop-width", type=_positive, default=480, help="azimuth columns per crop")
     t.add_argument("--lr", type=float, default=4e-3, help="learning rate")
-    t.add_argument("--every", type=int, default=3, help="use every n-th scan of each bag")
+    t.add_argument("--every", type=_positive, default=3, help="use every n-th scan of each bag")
     t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
     t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
     t.add_argument("--max-minutes", type=float, default=0.0,
@@ -479,7 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, help="crop and initialisation seed")
     t.add_argument("--init", default="", help="start from these weights (fine-tuning; their network replaces "
                                               "--widths/--context; recorded in the model card)")
-    t.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    t.add_argument("--threads", type=_positive, default=1, help="torch CPU threads")
     t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when there is one)")
     t.add_argument("--workers", type=_count, default=1, help="processes that build the projected-scan cache")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
@@ -491,7 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--mode", default="network", choices=("network", "labels"),
                    help="network, or labels (score the cloud's own label field: a sanity check)")
     e.add_argument("--device", default="cpu", help="cpu or cuda")
-    e.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    e.add_argument("--threads", type=_positive, default=1, help="torch CPU threads")
     e.add_argument("--passes", type=int, default=1, choices=(1, 2, 3),
                    help="network passes per scan, averaged (segmentation.passes: 2 adds the mirror image, 3 also a shifted one)")
     e.add_argument("--max-beams", type=int, default=0,
@@ -500,8 +506,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="k-nearest-neighbour vote after the network (segmentation.knn; 0 = off)")
     e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
                    help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
-    e.add_argument("--every", type=int, default=1, help="use every n-th scan")
-    e.add_argument("--limit", type=int, default=0, help="at most this many scans per bag (0 = all)")
+    e.add_argument("--every", type=_positive, default=1, help="use every n-th scan")
+    e.add_argument("--limit", type=_count, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")
     e.add_argument("--out", default="out/eval_seg", help="output folder")
     e.set_defaults(func=cmd_eval_seg)
@@ -510,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("bags", nargs="+", help="labelled or unlabelled bags of any sensors, or folders of bags "
                                            "(e.g. data/any_val/*/test; never the evaluation bags)")
     q.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
-    q.add_argument("--every", type=int, default=2, help="use every n-th scan of each bag")
+    q.add_argument("--every", type=_positive, default=2, help="use every n-th scan of each bag")
     q.set_defaults(func=cmd_quantize)
 
     r = sub.add_parser("replay",
@@ -546,9 +552,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
     i.add_argument("--out", default="out/inspect", help="output folder")
     i.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one)")
-    i.add_argument("--every", type=int, default=1, help="every n-th cloud")
-    i.add_argument("--limit", type=int, default=10, help="at most this many clouds")
+    i.add_argument("--every", type=_positive, default=1, help="every n-th cloud")
+    i.add_argument("--limit", type=_positive, default=10, help="at most this many clouds")
     i.add_argument("--no-plot", action="store_true", help="no scan_NNNN.png")
+    i.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(i)
     i.set_defaults(func=cmd_inspect)
 
@@ -556,8 +563,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
     a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"],
                    help="scenes (comma list)")
-    a.add_argument("--frames", type=int, default=400, help="scans per drift bag (400 = 80 s)")
-    a.add_argument("--free-bags", type=int, default=0, help="drift-free bags per group of the split (0 = 5)")
+    a.add_argument("--frames", type=_positive, default=400, help="scans per drift bag (400 = 80 s)")
+    a.add_argument("--free-bags", type=_count, default=0, help="drift-free bags per group of the split (0 = 5)")
     a.add_argument("--split", choices=("evaluation", "calibration"), default="evaluation",
                    help="bag set of the table (thresholds are calibrated on 'calibration' only)")
     a.add_argument("--calibrate", action="store_true",
@@ -570,8 +577,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--target", type=float, default=0.5, help="calibration: false WARN per 10 min allowed")
     a.add_argument("--margin", type=float, default=0.25,
                    help="calibration: the target must also hold this many sigma below the chosen one")
-    a.add_argument("--free-frames", type=int, default=750, help="scans per drift-free bag (750 = 150 s)")
-    a.add_argument("--within", type=int, default=2, help="an episode counts when alarmed within this many windows")
+    a.add_argument("--free-frames", type=_positive, default=750, help="scans per drift-free bag (750 = 150 s)")
+    a.add_argument("--within", type=_positive, default=2, help="an episode counts when alarmed within this many windows")
     a.add_argument("--speeds", type=_floats, default=(1.2,), help="robot speeds, m/s (e.g. 0.3,1.5,4,10)")
     a.add_argument("--estimates", type=_words, default=("sim",),
                    help="whose poses the monitor judges: sim (the bag's odometry, --odometry's error) and/or kiss "
@@ -591,7 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="simulate a garage bag with a drift episode, replay it, print the alarms")
     d.add_argument("--out", default="out/demo", help="output folder: the bag and the replay's reports")
-    d.add_argument("--frames", type=int, default=150, help="scans in the demo bag (5 per second)")
+    d.add_argument("--frames", type=_positive, default=150, help="scans in the demo bag (5 per second)")
     _add_monitor_args(d, "labels")
     d.set_defaults(func=cmd_demo)
 
@@ -602,9 +609,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scales", type=_floats, default=None, help="noise scales (default: 1,1.5,2)")
     e.add_argument("--labels", type=_words, default=None,
                    help="label sources: network (shipped segmentation) and/or gt (default: network,gt)")
-    e.add_argument("--trajectories", type=int, default=None, help="trajectories per scene (default: 2)")
-    e.add_argument("--frames", type=int, default=None, help="scans per trajectory (default: 300)")
-    e.add_argument("--baseline-windows", type=int, default=None,
+    e.add_argument("--trajectories", type=_positive, default=None, help="trajectories per scene (default: 2)")
+    e.add_argument("--frames", type=_positive, default=None, help="scans per trajectory (default: 300)")
+    e.add_argument("--baseline-windows", type=_positive, default=None,
                    help="windows per trajectory and setting that also get MME/MPV/MOM (default: 8)")
     _add_engine_args(e)
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
@@ -614,7 +621,7 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")
     q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"],
                    help="scenes (comma list)")
-    q.add_argument("--frames", type=int, default=20, help="scans per scene")
+    q.add_argument("--frames", type=_positive, default=20, help="scans per scene")
     q.add_argument("--detector", default="ring", choices=("ring", "open3d"), help="plane detector")
     q.add_argument("--seed", type=_seeds, default=[0],
                    help="trajectory/noise seeds: 0 | 0,3,5 | 0-6; recall is pooled over them")

@@ -38,9 +38,13 @@ def cloud_topic(path: str | Path, topic: str = "") -> str:
 
 
 def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None, topic: str = "",
-                every: int = 1, limit: int = 10, segmenter=None, plot: bool = True) -> list[dict]:
-    """Run grid + segmentation + planes on clouds of ``path`` and write OUT/scans.csv and OUT/scan_NNNN.png.
-    Returns the CSV rows (one per cloud; a cloud that cannot be read gets its error)."""
+                every: int = 1, limit: int = 10, segmenter=None, plot: bool = True,
+                progress: bool = False) -> list[dict]:
+    """Run grid + segmentation + planes on clouds of ``path`` and write OUT/scans.csv and OUT/scan_NNNN.png
+    (``progress``: a progress bar). Returns the CSV rows (one per cloud; a cloud that cannot be read gets its
+    error)."""
+    from tqdm import tqdm
+
     config = config or Config()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -51,12 +55,16 @@ def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None,
         segmenter = default_segmenter(config.segmentation)
     model = sensor_model(config)
     rows = []
-    for k, (_, _, msg) in enumerate(bag.read_messages(path, [topic])):
-        if k % every:
-            continue
-        if len(rows) >= limit:
-            break
-        rows.append(_inspect_one(k, msg, config, model, segmenter, out if plot else None))
+    every = max(int(every), 1)
+    total = min(limit, -(-bag.topics(path)[topic][1] // every))
+    with tqdm(total=total, desc="inspect", unit="scan", disable=not progress, leave=False) as bar:
+        for k, (_, _, msg) in enumerate(bag.read_messages(path, [topic])):
+            if k % every:
+                continue
+            if len(rows) >= limit:
+                break
+            rows.append(_inspect_one(k, msg, config, model, segmenter, out if plot else None))
+            bar.update()
     write_csv(out / "scans.csv", rows)
     return rows
 

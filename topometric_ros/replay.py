@@ -190,6 +190,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                          f"{monitor.sensor_frame or '(none)'} in /tf_static: compared through the odometry extrinsic")
         _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses),
                  monitor.extrinsic if to_sensor is None else to_sensor)
+    c = monitor.counters
+    if c["scans_processed"] and not records:
+        notes.append(_why_no_window(c, config.window.size, monitor.last_error))
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
                    segmentation=config.segmentation.mode,
@@ -264,6 +267,16 @@ class _Feed:
                 pass
         elif topic == opt.tf_static_topic:
             monitor.add_tf_static(msg)
+
+
+def _why_no_window(counters: dict, size: int, last_error: str) -> str:
+    """Why scans were processed but no window came out: too few for window.size, or windows lost (counted)."""
+    n = counters["scans_processed"]
+    if n < size:
+        return (f"no window: {n} scan{'s' * (n > 1)} processed, fewer than a window of window.size = {size}; "
+                f"replay with --window-size {n} (or a longer bag)")
+    return (f"no window from {n} scans: {counters['windows_discarded']} discarded, {counters['window_errors']} "
+            f"failed; last error: {last_error or 'none'}")
 
 
 def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Config) -> str:
