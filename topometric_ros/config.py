@@ -169,26 +169,34 @@ CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.dev
 #: Ranges of numeric config leaves: name -> (min, max), both included (checked by apply, so by load_config
 #: and the node alike). Others are unbounded.
 RANGES: dict[str, tuple[float, float]] = {
+    # window
     "window.size": (1, 200), "window.step": (0, 200), "window.pose_wait_s": (0.0, 10.0),
     "window.max_pose_gap_s": (0.001, 10.0), "window.queue_size": (1, 1000), "window.voxel_size": (0.0, 5.0),
-    "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0), "sensor.rate_hz": (0.0, 100.0),
+    "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0),
+    # sensor
+    "sensor.rate_hz": (0.0, 100.0),
+    # segmentation
     "segmentation.threads": (1, 64), "segmentation.min_confidence": (0.0, 1.0), "segmentation.passes": (1, 3),
     "segmentation.max_beams": (0, 256), "segmentation.knn": (0, 15), "segmentation.knn_distance": (0.0, 100.0),
-    "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000), "metrics.radius": (0.01, 10.0),
-    "metrics.min_neighbours": (0, 10_000), "health.stale_after_s": (0.1, 3600.0),
-    "health.fail_after_s": (0.0, 3600.0), "health.clock_jump_s": (0.0, 3600.0),
-    "health.baseline_windows": (1, 100_000), "health.baseline_history": (1, 1_000_000),
-    "health.warn_sigma": (0.0, 1000.0), "health.error_sigma": (0.0, 1000.0), "health.warn_persist": (1, 1000),
-    "health.persist_windows": (1, 1000), "health.pne_min_sigma": (0.0, 100.0), "health.cpv_min_sigma": (0.0, 100.0),
-    "health.pne_warn": (-1e3, 1e3), "health.pne_error": (-1e3, 1e3), "health.cpv_warn": (0.0, 1e6),
-    "health.cpv_error": (0.0, 1e6), "health.rot_rate_warn": (0.0, 360.0), "health.rot_rate_error": (0.0, 360.0),
+    # planes
+    "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
+    # metrics
+    "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000), "metrics.rate_gate_per_m": (0.0, 1.0),
+    # health
+    "health.stale_after_s": (0.1, 3600.0), "health.fail_after_s": (0.0, 3600.0),
+    "health.clock_jump_s": (0.0, 3600.0), "health.baseline_windows": (1, 100_000),
+    "health.baseline_history": (1, 1_000_000), "health.warn_sigma": (0.0, 1000.0),
+    "health.error_sigma": (0.0, 1000.0), "health.warn_persist": (1, 1000), "health.persist_windows": (1, 1000),
+    "health.pne_min_sigma": (0.0, 100.0), "health.cpv_min_sigma": (0.0, 100.0), "health.pne_warn": (-1e3, 1e3),
+    "health.pne_error": (-1e3, 1e3), "health.cpv_warn": (0.0, 1e6), "health.cpv_error": (0.0, 1e6),
+    "health.rot_rate_warn": (0.0, 360.0), "health.rot_rate_error": (0.0, 360.0),
     "health.trans_rate_warn": (0.0, 100.0), "health.trans_rate_error": (0.0, 100.0),
     "health.rot_floor": (0.0, 360.0), "health.rot_per_m": (0.0, 100.0), "health.rot_per_deg": (0.0, 10.0),
     "health.trans_floor": (0.0, 100.0), "health.trans_per_m": (0.0, 10.0), "health.error_factor": (1.0, 100.0),
     "health.rate_persist": (1, 1000), "health.rate_sigma": (0.0, 10.0), "health.noise_warn": (0.0, 1000.0),
     "health.noise_windows": (0, 100_000), "health.noise_quantile": (0.0, 1.0), "health.noise_margin": (0.0, 100.0),
     "health.noise_max_factor": (1.0, 1000.0), "health.min_planes": (0, 1_000_000),
-    "health.agreement_warn": (0.0, 1.0), "metrics.rate_gate_per_m": (0.0, 1.0),
+    "health.agreement_warn": (0.0, 1.0),
 }
 
 
