@@ -88,6 +88,13 @@ def test_unknown_mode_is_a_config_error():
         load_config(overrides={"segmentation.mode": "oracle"})
 
 
+def test_a_config_file_that_is_not_yaml_is_a_config_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("window: [\n")
+    with pytest.raises(ValueError, match="bad.yaml: not valid YAML"):
+        load_config(bad)
+
+
 @pytest.mark.parametrize("key, value", [("window.size", 0), ("health.stale_after_s", -1.0), ("segmentation.knn", 99)])
 def test_out_of_range_config_values_are_refused_as_the_node_refuses_them(key, value, tmp_path):
     """Not only the node: load_config (replay, audit, inspect, the Python API) refuses a value outside the

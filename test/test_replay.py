@@ -310,6 +310,17 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
     assert "  /odom  nav_msgs/msg/Odometry  " in out  # the bag's topics with their types and counts
 
 
+def test_a_folder_that_is_no_bag_is_refused_before_anything_runs(tmp_path):
+    from topometric_ros.bag import BagError
+    from topometric_ros.replay import replay
+
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "readme.txt").write_text("not a bag")
+    with pytest.raises(BagError, match="no rosbag2 bag at .*notes .a bag folder has metadata.yaml"):
+        replay(tmp_path / "notes", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tmp_path, capsys):
     """Scans processed but no window (3 scans, windows of 5): not a bare "windows 0" but the reason and the
     option that gives a window; with that option, one window."""

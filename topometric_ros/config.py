@@ -284,7 +284,10 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config file not found: {p}")
-        doc = yaml.safe_load(p.read_text()) or {}
+        try:
+            doc = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
         if not isinstance(doc, Mapping):
             raise ValueError(f"{p}: expected a mapping at the top level")
         params = _unwrap_ros(doc)
