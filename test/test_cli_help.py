@@ -48,8 +48,9 @@ def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
 
 
 def test_counts_that_must_be_positive_are_refused_before_anything_runs():
-    """--frames 0 used to end in an IndexError traceback, --every 0 in a division by zero, --window-size 0
-    in the default window size: each is a one-line error now (exit 2)."""
+    """--frames 0 used to end in an IndexError traceback, --every 0 and --rate 0 in a division by zero,
+    --window-size 0 in the default window size, alarms --speeds 0 or --estimates orb in a run of simulations:
+    each is a one-line error now (exit 2), before anything runs."""
     from topometric_ros.cli import build_parser
 
     parser = build_parser()
@@ -58,7 +59,11 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["demo", "--frames", "-3"], "argument --frames: expected a whole number >= 1"),
                         (["inspect", "bag", "--every", "0"], "argument --every: expected a whole number >= 1"),
                         (["eval-seg", "bag", "--every", "x"], "argument --every: expected a whole number >= 1"),
-                        (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range")):
+                        (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range"),
+                        (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
+                        (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
+                        (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
+                        (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb")):
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv], capture_output=True, text=True)
         assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)
 

@@ -84,6 +84,12 @@ def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, 
     share it."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    bad = [e for e in estimates if e not in ESTIMATES]
+    if bad or not estimates:
+        raise ValueError(f"estimates must be among {', '.join(ESTIMATES)}, got {', '.join(bad) or 'none'}")
+    for name, values in (("speeds", speeds), ("scales", scales), ("rate", (rate,))):
+        if not len(values) or not all(np.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"{name} must be > 0, got {', '.join(map(str, values)) or 'none'}")
     sensors = tuple(sensors or SPLIT_SENSORS[split])
     runs = []
     for layouts, seed0 in SPLITS[split][:groups]:
