@@ -65,3 +65,26 @@ def test_simulated_bag_decodes_with_independent_mcap_reader(office_bag):
     assert seen["/points"] == summary["frames"] == 30
     assert seen["/odom"] == seen["/odom_gt"] > seen["/points"]
     assert seen["/tf_static"] == 1
+
+
+def test_an_interrupted_write_leaves_nothing_that_passes_for_whole(tmp_path):
+    """A bag whose writing raised (Ctrl-C, SIGTERM) keeps no metadata.yaml, so nothing takes it for a whole bag
+    (training's bag search needs one); a file written through reports.written_whole is there whole or not at
+    all, with no partial file left."""
+    from topometric_ros.reports import written_whole
+
+    path = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        with bag.BagWriter(path) as w:
+            w.write("/odom", 1.0, bag.make_odometry(1.0, np.eye(4)))
+            raise KeyboardInterrupt
+    assert path.is_dir() and not (path / "metadata.yaml").exists()
+    whole = tmp_path / "cache.npz"
+    with pytest.raises(KeyboardInterrupt):
+        with written_whole(whole) as tmp:
+            np.savez(tmp, a=np.arange(3))
+            raise KeyboardInterrupt
+    assert list(tmp_path.glob("cache*")) == []
+    with written_whole(whole) as tmp:
+        np.savez(tmp, a=np.arange(3))
+    assert list(tmp_path.glob("cache*")) == [whole] and np.load(whole)["a"].tolist() == [0, 1, 2]

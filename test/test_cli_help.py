@@ -75,7 +75,8 @@ def test_alarms_grid_takes_health_settings_in_their_own_type_and_refuses_others(
     assert dict(args.grid) == {"rate_sigma": (0.0, 1.5), "rate_persist": (1, 2)}
     assert isinstance(dict(args.grid)["rate_persist"][1], int)
     for bad, why in (("window_size=5", "KEY a health setting"), ("rate_limits=a,b", "not numeric"),
-                     ("rate_persist=1.5", "config key 'rate_persist' must be int, got 1.5")):
+                     ("rate_persist=1.5", "config key 'health.rate_persist' must be int, got 1.5"),
+                     ("rate_sigma=0,50", "'health.rate_sigma' = 50 is out of range")):
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--grid", bad],
                              capture_output=True, text=True)
         assert res.returncode == 2 and why in res.stderr, (bad, res.stderr)

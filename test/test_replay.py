@@ -313,7 +313,7 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
 def test_sigterm_stops_a_replay_like_ctrl_c(office_bag, tmp_path):
     """SIGTERM (a timeout, a scheduler) mid-replay: exit 130 with "interrupted", no traceback, and the
     diagnostics of what was processed written (the 30-scan bag at half real rate takes 12 s; the signal
-    comes 5 s after the start)."""
+    comes 2 s after the replay has started)."""
     import signal
     import subprocess
     import sys
@@ -324,7 +324,10 @@ def test_sigterm_stops_a_replay_like_ctrl_c(office_bag, tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "topometric_ros.cli", "replay", str(bag_path), "--out", str(out),
                              "--segmentation", "labels", "--rate", "0.5", "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(5.0)
+    deadline = time.monotonic() + 60
+    while not out.exists() and time.monotonic() < deadline:  # replay() has started (its imports are done)
+        time.sleep(0.1)
+    time.sleep(2.0)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err

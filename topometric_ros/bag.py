@@ -249,7 +249,10 @@ class BagWriter:
 
     def __exit__(self, *exc: Any) -> None:
         self._writer.close()
-        if self._compress and exc[0] is None:
+        if exc[0] is not None:  # interrupted or failed: no metadata.yaml, so nothing takes it for a whole bag
+            (self.path / "metadata.yaml").unlink(missing_ok=True)
+            return
+        if self._compress:
             for file in self.path.glob("*.mcap"):
                 zstd_chunks(file)
 

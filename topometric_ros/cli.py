@@ -266,7 +266,7 @@ def _grid_axis(text: str) -> tuple[str, tuple]:
     if isinstance(default, str):
         raise argparse.ArgumentTypeError(f"health.{key} is not numeric: it cannot be swept")
     try:
-        return key, tuple(getattr(apply(HealthConfig(), {key: yaml.safe_load(v)}), key) for v in items)
+        return key, tuple(getattr(apply(HealthConfig(), {key: yaml.safe_load(v)}, "health."), key) for v in items)
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
 
@@ -494,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--crops", type=_positive, default=768, help="random azimuth crops per epoch")
     t.add_argument("--batch", type=_positive, default=12, help="crops per optimiser step")
     t.add_argument("--crop-width", type=_positive, default=480, help="azimuth columns per crop")
-    t.add_argument("--lr", type=_rate, default=4e-3, help="learning rate")
+    t.add_argument("--lr", type=_speed, default=4e-3, help="learning rate")
     t.add_argument("--every", type=_positive, default=3, help="use every n-th scan of each bag")
     t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
     t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
@@ -659,8 +659,8 @@ def _terminated(signum, frame) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _terminated)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
         return args.func(args)
     except KeyboardInterrupt:
@@ -677,6 +677,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         raise
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

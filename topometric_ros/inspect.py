@@ -27,14 +27,15 @@ CLASS_COLOURS = np.array([[0.6, 0.6, 0.6], [0.55, 0.35, 0.15], [0.12, 0.47, 0.71
                           [1.0, 0.5, 0.0], [0.6, 0.31, 0.64], [0.2, 0.63, 0.17]])
 
 
-def cloud_topic(path: str | Path, topic: str = "") -> str:
-    """``topic`` if the bag has it, else the bag's only PointCloud2 topic; BagError listing the topics otherwise."""
+def cloud_topic(path: str | Path, topic: str = "") -> tuple[str, int]:
+    """(``topic`` if the bag has it, else the bag's only PointCloud2 topic; its message count); BagError listing
+    the topics otherwise."""
     topics = bag.topics(path)
     found, _ = bag.pick_topic(topics, bag.POINTCLOUD2, topic, "/points")
     if found not in topics:
         raise bag.BagError(f"no PointCloud2 topic {found} in {path}; name one with --points-topic. "
                            f"Topics: {bag.describe_topics(topics)}")
-    return found
+    return found, topics[found][1]
 
 
 def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None, topic: str = "",
@@ -48,7 +49,7 @@ def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None,
     config = config or Config()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    topic = cloud_topic(path, topic)
+    topic, count = cloud_topic(path, topic)
     if segmenter is None and config.segmentation.mode == "network":
         from .pipeline import default_segmenter
 
@@ -56,7 +57,7 @@ def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None,
     model = sensor_model(config)
     rows = []
     every = max(int(every), 1)
-    total = min(limit, -(-bag.topics(path)[topic][1] // every))
+    total = min(limit, -(-count // every))
     with tqdm(total=total, desc="inspect", unit="scan", disable=not progress, leave=False) as bar:
         for k, (_, _, msg) in enumerate(bag.read_messages(path, [topic])):
             if k % every:

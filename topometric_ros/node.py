@@ -235,7 +235,8 @@ class MonitorNode(Node):
         if not publishers:
             return f" ({topic} has no publisher)"
         return (f" ({topic} has {publishers} publisher{'s' * (publishers > 1)}: if it publishes, its clouds are lost "
-                f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md)")
+                f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md; "
+                f"points_qos reliable does not match a best-effort driver)")
 
     def _monitor_values(self) -> dict:
         """The monitor's counters and where its extrinsic comes from, as status values (no window yet)."""

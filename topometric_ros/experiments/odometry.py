@@ -17,6 +17,7 @@ import numpy as np
 from .. import bag
 from ..cloud import read_scan
 from ..deskew import azimuth_times
+from ..reports import written_whole
 from ..sensors import LAYOUTS
 
 ODOM_TOPIC = "/odom_kiss"
@@ -88,6 +89,8 @@ def cached_kiss(path: str | Path, cache: str | Path, topic: str = "/points",
         return z["stamps"], z["poses"], doc["frame_id"], doc["info"]
     stamps, poses, frame_id, info = kiss_odometry(path, topic, progress=progress)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache.with_suffix(".npz"), stamps=stamps, poses=poses)
-    meta.write_text(json.dumps({"key": key, "frame_id": frame_id, "info": info}))
+    with written_whole(cache.with_suffix(".npz")) as tmp:
+        np.savez(tmp, stamps=stamps, poses=poses)
+    with written_whole(meta) as tmp:  # written last: the cache counts only when both are whole
+        tmp.write_text(json.dumps({"key": key, "frame_id": frame_id, "info": info}))
     return stamps, poses, frame_id, info

@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from .. import classes as C
+from ..reports import written_whole
 from .model import ModelSpec, RangeNet
 
 WEIGHTS_NAME, CARD_NAME = "rangenet.pt", "model_card.json"
@@ -132,7 +133,8 @@ def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
     path = out / WEIGHTS_NAME
     state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
     card = json.loads(json.dumps(card))  # plain types only: what torch.load(weights_only=True) accepts
-    torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, path)
+    with written_whole(path) as tmp:
+        torch.save({"model_card": card, "state_dict": state, "state_sha256": state_digest(state)}, tmp)
     doc = {**card, "weights": {"file": WEIGHTS_NAME, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
                                "bytes": path.stat().st_size}}
     (out / CARD_NAME).write_text(json.dumps(doc, indent=2))

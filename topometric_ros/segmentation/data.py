@@ -15,6 +15,7 @@ import numpy as np
 from .. import bag
 from ..cloud import read_scan
 from ..grid import ScanGrid, scan_grid
+from ..reports import written_whole
 from .projection import project, project_labels
 
 
@@ -113,7 +114,8 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
             for shape, g in groups.items()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **{f"{k}_{h}x{w}": v for (h, w), g in data.items() for k, v in g.items()})
+    with written_whole(path) as tmp:  # an interrupted build leaves no cache that loads as a whole one
+        np.savez(tmp, **{f"{k}_{h}x{w}": v for (h, w), g in data.items() for k, v in g.items()})
     return data
 
 

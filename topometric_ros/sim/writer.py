@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import bag, classes, geometry
 from ..cloud import DATATYPES as DATATYPES_NP, make_layout_cloud, rosbags_types
+from ..reports import written_whole
 from ..sensors import DEFAULT_SENSOR, SensorModel, sensor
 from .drift import DriftSpec, OdometryError, estimated_poses, odometry_error, plan_episodes
 from .lidar import Lidar, Scan, firings_per_sweep
@@ -113,7 +114,8 @@ def simulate(cfg: SimConfig, out: str | Path, progress: bool = True) -> dict:
         "episodes": [e.as_dict() for e in episodes],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
-    (out / "truth.json").write_text(json.dumps(summary, indent=2))
+    with written_whole(out / "truth.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2))
     return summary
 
 
