@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -235,22 +236,6 @@ def _floats(text: str) -> tuple:
     return tuple(float(x) for x in text.split(",") if x.strip())
 
 
-def _at_least_float(low: float, strictly: bool):
-    """argparse type: a finite number > ``low`` (``strictly``) or >= ``low``."""
-    def parse(text: str) -> float:
-        try:
-            x = float(text)
-        except ValueError:
-            x = float("nan")
-        if not (x > low if strictly else x >= low) or x == float("inf"):
-            raise argparse.ArgumentTypeError(f"expected a number {'>' if strictly else '>='} {low:g}, got {text!r}")
-        return x
-    return parse
-
-
-_rate, _speed = _at_least_float(0.0, True), _at_least_float(0.0, False)  # > 0; >= 0
-
-
 def _grid_axis(text: str) -> tuple[str, tuple]:
     """KEY=V1,V2 of --grid: a numeric health setting and the values to sweep, each read and checked as --set
     reads it (YAML, config.apply)."""
@@ -275,21 +260,23 @@ def _ints(text: str) -> tuple:
     return tuple(int(x) for x in text.split(",") if x.strip())
 
 
-def _at_least(low: int):
-    """argparse type: a whole number >= ``low``."""
-    def parse(text: str) -> int:
+def _number(kind: type, low: float, strictly: bool = False):
+    """argparse type: a finite ``kind`` (int: "whole number"; float) >= ``low``, or > ``low`` when ``strictly``."""
+    word = "whole number" if kind is int else "number"
+
+    def parse(text: str):
         try:
-            n = int(text)
+            x = kind(text)
         except ValueError:
-            n = low - 1
-        if n < low:
-            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {text!r}")
-        return n
-    parse.__name__ = f"whole number >= {low}"
+            x = float("nan")
+        if not math.isfinite(x) or not (x > low if strictly else x >= low):
+            raise argparse.ArgumentTypeError(f"expected a {word} {'>' if strictly else '>='} {low:g}, got {text!r}")
+        return x
     return parse
 
 
-_count, _positive = _at_least(0), _at_least(1)
+_count, _positive = _number(int, 0), _number(int, 1)
+_positive_number, _non_negative = _number(float, 0.0, strictly=True), _number(float, 0.0)
 
 
 def _words(text: str) -> tuple:
@@ -461,9 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
     s.add_argument("--frames", type=_positive, default=600, help="scans per bag")
-    s.add_argument("--rate", type=_rate, default=5.0, help="scans per second (5 or 10)")
-    s.add_argument("--odom-rate", type=_rate, default=20.0, help="odometry messages per second")
-    s.add_argument("--speed", type=_speed, default=1.2, help="robot speed m/s")
+    s.add_argument("--rate", type=_positive_number, default=5.0, help="scans per second (5 or 10)")
+    s.add_argument("--odom-rate", type=_positive_number, default=20.0, help="odometry messages per second")
+    s.add_argument("--speed", type=_non_negative, default=1.2, help="robot speed m/s")
     s.add_argument("--drift", default="none", help="MODE[:SCALE], MODE in none, r, t, rt (e.g. rt:1.5)")
     s.add_argument("--drift-kind", default="episodes", choices=("episodes", "noise"),
                    help="drift episodes with known start/end, or per-pose noise")
@@ -494,11 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--crops", type=_positive, default=768, help="random azimuth crops per epoch")
     t.add_argument("--batch", type=_positive, default=12, help="crops per optimiser step")
     t.add_argument("--crop-width", type=_positive, default=480, help="azimuth columns per crop")
-    t.add_argument("--lr", type=_speed, default=4e-3, help="learning rate")
+    t.add_argument("--lr", type=_non_negative, default=4e-3, help="learning rate")
     t.add_argument("--every", type=_positive, default=3, help="use every n-th scan of each bag")
     t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
     t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
-    t.add_argument("--max-minutes", type=_speed, default=0.0,
+    t.add_argument("--max-minutes", type=_non_negative, default=0.0,
                    help="stop training after this many minutes (0 = run all epochs); keeps the best-val epoch")
     t.add_argument("--seed", type=int, default=0, help="crop and initialisation seed")
     t.add_argument("--init", default="", help="start from these weights (fine-tuning; their network replaces "
@@ -592,8 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--grid", type=_grid_axis, action="append", default=None, metavar="KEY=V1,V2",
                    help="--calibrate-rates: sweep these health settings instead of the default grid (repeatable, "
                         "e.g. --grid rate_sigma=0,1,2; the others stay at their configured values)")
-    a.add_argument("--target", type=_speed, default=0.5, help="calibration: false WARN per 10 min allowed")
-    a.add_argument("--margin", type=_speed, default=0.25,
+    a.add_argument("--target", type=_non_negative, default=0.5, help="calibration: false WARN per 10 min allowed")
+    a.add_argument("--margin", type=_non_negative, default=0.25,
                    help="calibration: the target must also hold this many sigma below the chosen one")
     a.add_argument("--free-frames", type=_positive, default=750, help="scans per drift-free bag (750 = 150 s)")
     a.add_argument("--within", type=_positive, default=2, help="an episode counts when alarmed within this many windows")
@@ -603,7 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(KISS-ICP on the bag's clouds); drift episodes go on top")
     a.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
                    help="the simulated odometry's everyday error under the episodes")
-    a.add_argument("--rate", type=_rate, default=5.0, help="scans per second of the bags (10 = every sweep)")
+    a.add_argument("--rate", type=_positive_number, default=5.0, help="scans per second of the bags (10 = every sweep)")
     a.add_argument("--scales", type=_floats, default=None, help="drift scales of the episode bags (default 1, 1.5, 2)")
     a.add_argument("--sensors", type=_sensors, default=None,
                    help="sensors the bags cycle through (default: the split's own, held out between splits)")
@@ -651,8 +638,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _terminated(signum, frame) -> None:
-    """SIGTERM (a timeout, a job scheduler) takes Ctrl-C's path: running tasks cancelled, Ray shut down, what
-    finished written; not an exit that leaves Ray's workers behind."""
+    """SIGTERM (a timeout, a job scheduler) takes Ctrl-C's path: exit 130, what finished written, files being
+    written left out (reports.written_whole). While Ray runs, Ray's own SIGTERM handler replaces this one."""
     raise KeyboardInterrupt(f"signal {signum}")
 
 

@@ -187,7 +187,7 @@ class MonitorNode(Node):
     def _on_window(self, result, scans) -> None:
         """Worker thread: keep the window's status, publish it now (every window reaches /diagnostics)."""
         latency = self._now() - result.stamps[-1]
-        values = {**window_values(result, self.monitor.counters), "extrinsic": self.monitor.extrinsic_source}
+        values = window_values(result, self.monitor.counters, {"extrinsic": self.monitor.extrinsic_source})
         with self._lock:
             self._last_window = (result.level, result.message, values)
             lat = self._latency

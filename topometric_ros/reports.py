@@ -21,17 +21,27 @@ def pyplot():
     return plt
 
 
+@contextmanager
+def written_whole(path: str | Path) -> Iterator[Path]:
+    """A path beside ``path`` (same suffix, so numpy and torch keep the name) to write to; moved onto ``path``
+    when the block ends, removed when it raises (Ctrl-C, SIGTERM): a reader never takes half a file for one."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
+    try:
+        yield tmp
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_csv(path: str | Path, rows: list[dict]) -> Path:
-    """rows (dicts with the same keys) -> CSV at path, written to a temporary file first so a reader never
-    sees half a table."""
+    """rows (dicts with the same keys) -> CSV at path, written whole (:func:`written_whole`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w", newline="") as f:
+    with written_whole(path) as tmp, tmp.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else [])
         w.writeheader()
         w.writerows(rows)
-    tmp.replace(path)
     return path
 
 
@@ -51,26 +61,14 @@ def strict(obj: Any) -> Any:
     return obj
 
 
-@contextmanager
-def written_whole(path: str | Path) -> Iterator[Path]:
-    """A path beside ``path`` (same suffix, so numpy and torch keep the name) to write to; moved onto ``path``
-    when the block ends, removed when it raises (Ctrl-C, SIGTERM): a reader never takes half a file for one."""
-    path = Path(path)
-    tmp = path.with_name(f"{path.stem}.partial{path.suffix}")
-    try:
-        yield tmp
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def write_json(path: str | Path, obj: Any, indent: int = 1) -> Path:
-    """``obj`` as strict JSON (see :func:`strict`; floats at full precision) at path, written atomically."""
+    """``obj`` as strict JSON (see :func:`strict`; floats at full precision) at path, written whole
+    (:func:`written_whole`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(strict(obj), indent=indent, allow_nan=False))
-    tmp.replace(path)
+    text = json.dumps(strict(obj), indent=indent, allow_nan=False)
+    with written_whole(path) as tmp:
+        tmp.write_text(text)
     return path
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import geometry
-from ..reports import pyplot, write_csv
+from ..reports import pyplot, write_csv, written_whole
 from ..sim.drift import BASE_NOISE_ROT_DEG, BASE_NOISE_TRANS_M
 
 METRICS = ("mme", "mpv", "mom", "pne", "cpv")
@@ -84,9 +84,8 @@ def _scan_cache(out: Path, scene: str, traj: int, labels: str, spec: ExperimentS
     scans = [replace(process_scan(f, config, segmenter, i), points=None, labels=None)
              for i, f in enumerate(_frames(scene, traj, spec))]
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(pickle.dumps(scans))
-    tmp.replace(path)
+    with written_whole(path) as tmp:
+        tmp.write_bytes(pickle.dumps(scans))
     return path
 
 

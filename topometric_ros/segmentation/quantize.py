@@ -19,6 +19,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ..reports import written_whole
+
 log = logging.getLogger(__name__)
 
 RANGES_NAME = "rangenet.int8.json"
@@ -191,5 +193,6 @@ def write_ranges(ranges: dict, weights: str | Path, state_sha256: str, command: 
     doc = {"format_version": FORMAT_VERSION, "state_sha256": state_sha256, "command": command, "images": images,
            "ranges_sha256": hashlib.sha256(json.dumps(ranges, sort_keys=True).encode()).hexdigest(),
            "ranges": ranges}
-    path.write_text(json.dumps(doc, indent=1) + "\n")
+    with written_whole(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")
     return path
