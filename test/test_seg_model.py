@@ -16,10 +16,11 @@ from topometric_ros.config import SegmentationConfig, load_config
 from topometric_ros.grid import scan_grid
 from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
 from topometric_ros.segmentation.infer import Segmenter
+from topometric_ros.segmentation.metrics import confusion
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
-from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, family_chances, family_summary,
-                                               lovasz_softmax, model_card, sample_crops)
+from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, confusion_on, lovasz_softmax,
+                                               model_card, sample_crops, sensor_strata, strata_summary)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -274,26 +275,67 @@ def test_class_weights_favour_rare_classes():
     assert w[C.CHAIR] > w[C.WALL] > 0 and w[C.FLOOR] == 0
 
 
-def test_crops_give_every_sensor_family_an_equal_share_however_many_image_widths_it_has():
-    def group(sensors, width, fill):
+def test_crops_give_every_sensor_model_an_equal_share_however_its_images_are_grouped():
+    def group(sensors, width):
         n = len(sensors)
-        return {"images": np.full((n, 4, 8, width), fill, np.float16), "labels": np.zeros((n, 8, width), np.uint8),
+        fill = np.array([SENSOR_CODES[s] for s in sensors], np.float16)[:, None, None, None]
+        return {"images": np.broadcast_to(fill, (n, 4, 8, width)).copy(), "labels": np.zeros((n, 8, width), np.uint8),
                 "sensor": np.array(sensors)}
 
-    # the Mid-360 fills three widths (one of them a single odd scan); two Ouster models share one shape
-    groups = [group(["Mid-360"] * n, w, 1.0) for n, w in ((6, 576), (1, 640), (1, 704))]
-    groups += [group(["OS1-64", "OS0-32", "OS1-64"], 1024, 2.0), group(["VLP-32C"], 1800, 3.0)]
-    assert np.allclose(family_chances(groups), [6 / 24, 1 / 24, 1 / 24, 1 / 3, 1 / 3])
+    # the Mid-360 fills three widths (one of them a single odd scan); three Ouster models share one shape,
+    # the OS1-128 with four images a scan
+    groups = [group(["Mid-360"] * n, w) for n, w in ((6, 576), (1, 640), (1, 704))]
+    groups += [group(["OS1-128"] * 8 + ["OS0-32", "OS1-64", "OS1-64"], 1024), group(["VLP-32C"], 1800)]
+    strata, chances = sensor_strata(groups)
+    assert [(st.group, st.sensor, len(st.images)) for st in strata] == [
+        (0, "Mid-360", 6), (1, "Mid-360", 1), (2, "Mid-360", 1), (3, "OS0-32", 1), (3, "OS1-128", 8),
+        (3, "OS1-64", 2), (4, "VLP-32C", 1)]
+    assert np.allclose(chances, [6 / 40, 1 / 40, 1 / 40, 1 / 5, 1 / 5, 1 / 5, 1 / 5])
     rng = np.random.default_rng(0)
-    drawn = [int(sample_crops(groups, 2, 480, rng)[0][0, 0, 0, 0]) for _ in range(3000)]
-    share = np.bincount(drawn, minlength=4)[1:] / len(drawn)
-    assert np.allclose(share, 1 / 3, atol=0.03), share  # by shape, the Mid-360 would take 3/5
-    x, y = sample_crops(groups[:1], 5, 480, rng)
-    assert x.shape == (5, 4, 8, 480) and y.shape == (5, 8, 480)
-    summary = family_summary(groups, family_chances(groups)).splitlines()
-    assert summary[0] == "training batches by sensor family (3):"
-    assert "33.3 %       8 images (8x576, 8x640, 8x704): Mid-360" in summary[1]
-    assert summary[2].endswith("(8x1024): OS0-32, OS1-64")
+    drawn = []
+    for _ in range(3000):
+        x, _ = sample_crops(groups, 2, 480, rng)
+        assert len(torch.unique(x[:, 0])) == 1  # one sensor model per batch
+        drawn.append(int(x[0, 0, 0, 0]))
+    share = np.bincount(drawn, minlength=len(SENSOR_CODES)) / len(drawn)
+    assert np.allclose(share, 1 / 5, atol=0.03), share  # by shape, the three Ouster models would share 1/3
+    summary = strata_summary(groups, strata, chances).splitlines()
+    assert summary[0] == "training batches by sensor model (5):"
+    assert "20.0 %       8 images (8x576, 8x640, 8x704): Mid-360" in summary[1]
+    assert summary[3].endswith("8 images (8x1024): OS1-128")
+
+
+SENSOR_CODES = {"Mid-360": 0, "OS0-32": 1, "OS1-128": 2, "OS1-64": 3, "VLP-32C": 4}
+
+
+def test_crops_are_the_images_columns_wrapping_around_on_any_device():
+    rng = np.random.default_rng(1)
+    images = rng.normal(0, 5, (3, 4, 8, 64)).astype(np.float16)
+    labels = rng.integers(0, 7, (3, 8, 64)).astype(np.uint8)
+    groups = [{"images": images, "labels": labels, "sensor": np.array(["VLP-32C"] * 3)}]
+    x, y = sample_crops(groups, 5, 48, np.random.default_rng(2))
+    assert x.dtype == torch.float32 and y.dtype == torch.int64 and x.shape == (5, 4, 8, 48) and y.shape == (5, 8, 48)
+    draw = np.random.default_rng(2)  # the same draws, cut with numpy
+    draw.choice(1, p=[1.0])
+    idx, start = draw.integers(3, size=5), draw.integers(64, size=5)
+    for k in range(5):
+        cols = (start[k] + np.arange(48)) % 64
+        np.testing.assert_array_equal(x[k].numpy(), images[idx[k]][..., cols].astype(np.float32))
+        np.testing.assert_array_equal(y[k].numpy(), labels[idx[k]][..., cols])
+    on_torch = [{**groups[0], "images": torch.from_numpy(images), "labels": torch.from_numpy(labels)}]
+    x2, y2 = sample_crops(on_torch, 5, 48, np.random.default_rng(2))
+    assert torch.equal(x, x2) and torch.equal(y, y2)
+    wide = sample_crops(groups, 2, 480, np.random.default_rng(3))[0]
+    assert wide.shape == (2, 4, 8, 64)  # a narrower image is cut at its own width
+
+
+def test_confusion_on_the_device_counts_as_metrics_confusion():
+    rng = np.random.default_rng(4)
+    truth = rng.integers(0, 9, (4, 16, 32))
+    truth[truth == 8] = 255
+    pred = rng.integers(0, 7, (4, 16, 32))
+    np.testing.assert_array_equal(confusion_on(torch.from_numpy(truth), torch.from_numpy(pred)).numpy(),
+                                  confusion(truth, pred))
 
 
 def test_lovasz_is_zero_for_a_perfect_prediction_and_grows_with_errors():

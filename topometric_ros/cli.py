@@ -475,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train the segmentation network on labelled bags (simulated train split)")
     t.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/train)")
-    t.add_argument("--val", nargs="*", default=[], help="validation bags (logged per epoch, never used to pick weights)")
+    t.add_argument("--val", nargs="*", default=[], help="validation bags (scored every epoch; the epoch of best mIoU on them is saved)")
     t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
     t.add_argument("--epochs", type=_positive, default=12, help="passes over the crops")
     t.add_argument("--crops", type=_positive, default=768, help="random azimuth crops per epoch")

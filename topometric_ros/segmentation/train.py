@@ -1,7 +1,8 @@
 """Train the range-image network from labelled bags (``topometric train``).
 
-Scans are projected once into a cache (data.py). Each step takes random azimuth crops of random scans,
-augments them (yaw = azimuth roll, mirror, sensor height and tilt jitter, range noise, point dropout,
+Scans are projected once into a cache (data.py). Each step takes random azimuth crops of random scans of one
+sensor model (every model an equal share of the steps; on a GPU the cache sits in its memory and the crops are
+cut there), augments them (yaw = azimuth roll, mirror, sensor height and tilt jitter, range noise, point dropout,
 intensity scale / absence) and minimises weighted cross entropy + Lovász-softmax. Crops are trained with
 zero azimuth padding (their ends do not meet); validation and inference use whole scans with circular
 padding. With validation bags the epoch of best validation mIoU (paper classes) is saved, else the last
@@ -92,50 +93,66 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
     return torch.cat([rng, xyz, intensity * v, v], 1)
 
 
-def sensor_family(group: dict) -> tuple[str, ...]:
-    """A cache group's sensor family: the sorted names of the sensors its images come from."""
-    return tuple(sorted(set(map(str, group["sensor"]))))
+@dataclass(frozen=True)
+class Stratum:
+    """The images of one sensor model in one image-shape group of the cache."""
+
+    group: int  # index of the group in the list of groups
+    sensor: str
+    images: np.ndarray  # (n,) indices of this sensor's images in the group
 
 
-def family_chances(groups: Sequence[dict]) -> np.ndarray:
-    """(G,) chance of each image-shape group per batch: every sensor family (the set of sensors a group holds)
-    gets an equal share, split over its groups by their image counts. The nine Ouster models share one shape;
-    a non-repetitive scan's image width follows its point count, so the Mid-360 fills several groups (some of
-    one odd-width scan) and would otherwise be drawn once per width."""
-    families = [sensor_family(g) for g in groups]
-    images = np.array([len(g["images"]) for g in groups], float)
-    family_images = {f: images[[h == f for h in families]].sum() for f in set(families)}
-    p = np.array([n / family_images[f] for n, f in zip(images, families)])
-    return p / p.sum()
+def sensor_strata(groups: Sequence[dict]) -> tuple[list[Stratum], np.ndarray]:
+    """The (group, sensor) strata of the cache and each one's chance per batch: every sensor model gets an
+    equal share, split over its strata by image count. By shape, the ten Ouster models (one 32 x 1024 shape)
+    would share one seventh of the batches while a VLP-16 alone had another; and a non-repetitive scan's
+    image width follows its point count, so the Mid-360 fills several groups (some of one odd-width scan)."""
+    strata = [Stratum(i, str(s), np.flatnonzero(g["sensor"] == s))
+              for i, g in enumerate(groups) for s in np.unique(g["sensor"])]
+    per_sensor: dict[str, int] = {}
+    for st in strata:
+        per_sensor[st.sensor] = per_sensor.get(st.sensor, 0) + len(st.images)
+    p = np.array([len(st.images) / per_sensor[st.sensor] for st in strata])
+    return strata, p / p.sum()
 
 
-def family_summary(groups: Sequence[dict], chances: np.ndarray) -> str:
-    """One line per sensor family: its sensors, image shapes, image count and share of the batches."""
-    families: dict[tuple, list[int]] = {}
-    for i, g in enumerate(groups):
-        families.setdefault(sensor_family(g), []).append(i)
-    lines = [f"training batches by sensor family ({len(families)}):"]
-    for sensors, idx in families.items():
-        shapes = ", ".join("x".join(map(str, groups[i]["images"].shape[-2:])) for i in idx)
-        lines.append(f"  {100 * chances[idx].sum():5.1f} %  {sum(len(groups[i]['images']) for i in idx):6d} images "
-                     f"({shapes}): {', '.join(sensors)}")
+def strata_summary(groups: Sequence[dict], strata: Sequence[Stratum], chances: np.ndarray) -> str:
+    """One line per sensor model: its share of the batches, image count and image shapes."""
+    sensors = sorted({st.sensor for st in strata})
+    lines = [f"training batches by sensor model ({len(sensors)}):"]
+    for name in sensors:
+        idx = [i for i, st in enumerate(strata) if st.sensor == name]
+        shapes = ", ".join("x".join(map(str, groups[strata[i].group]["images"].shape[-2:])) for i in idx)
+        lines.append(f"  {100 * chances[idx].sum():5.1f} %  {sum(len(strata[i].images) for i in idx):6d} images "
+                     f"({shapes}): {name}")
     return "\n".join(lines)
 
 
-def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator, chances: np.ndarray | None = None):
-    """n random azimuth crops (wrapping around) of random images of ONE image-shape group, drawn with
-    ``chances`` (default: :func:`family_chances`): xyz+intensity (n, 4, rows, w) float32 and labels;
-    w = width or the group's own width when that is narrower."""
-    p = family_chances(groups) if chances is None else chances
-    g = groups[int(rng.choice(len(groups), p=p))]
-    images, labels = g["images"], g["labels"]
-    w = min(width, images.shape[-1])
-    idx = rng.integers(len(images), size=n)
-    start = rng.integers(images.shape[-1], size=n)
-    cols = (start[:, None] + np.arange(w)) % images.shape[-1]
-    x = np.stack([images[i][..., c] for i, c in zip(idx, cols)]).astype(np.float32)
-    y = np.stack([labels[i][..., c] for i, c in zip(idx, cols)])
-    return torch.from_numpy(x), torch.from_numpy(y.astype(np.int64))
+def sample_crops(groups: Sequence[dict], n: int, width: int, rng: np.random.Generator,
+                 strata: tuple[list[Stratum], np.ndarray] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """n random azimuth crops (wrapping around) of random images of ONE sensor model in one image-shape group,
+    the stratum drawn by its chance (default: :func:`sensor_strata`): xyz+intensity (n, 4, rows, w) float32 and
+    labels (n, rows, w) int64, on the device the group's images are on (numpy arrays: the CPU); w = width or
+    the group's own width when that is narrower. The random draws come from ``rng`` alone."""
+    found, p = sensor_strata(groups) if strata is None else strata
+    st = found[int(rng.choice(len(found), p=p))]
+    images, labels = (torch.as_tensor(groups[st.group][k]) for k in ("images", "labels"))
+    _, ch, rows, cols_n = images.shape
+    w = min(width, cols_n)
+    idx = st.images[rng.integers(len(st.images), size=n)]
+    start = rng.integers(cols_n, size=n)
+    dev = images.device
+    cols = torch.from_numpy((start[:, None] + np.arange(w)) % cols_n).to(dev)[:, None, None, :]
+    i = torch.from_numpy(idx).to(dev)[:, None, None, None]
+    c, r = torch.arange(ch, device=dev)[None, :, None, None], torch.arange(rows, device=dev)[None, None, :, None]
+    return images[i, c, r, cols].float(), labels[i[:, 0], r[:, 0], cols[:, 0]].long()
+
+
+def confusion_on(truth: torch.Tensor, pred: torch.Tensor, num_classes: int = C.NUM_CLASSES) -> torch.Tensor:
+    """metrics.confusion on the tensors' own device: (K, K) int64 counts, rows = truth; labels >= K ignored."""
+    keep = (truth < num_classes) & (pred < num_classes)
+    idx = truth[keep] * num_classes + pred[keep]
+    return torch.bincount(idx, minlength=num_classes * num_classes).view(num_classes, num_classes)
 
 
 def augment(x: torch.Tensor, y: torch.Tensor, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -264,9 +281,9 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     val = (load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress, workers=cfg.workers)
            if val_bags else None)
     groups = list(data.values())
-    chances = family_chances(groups)
+    strata = sensor_strata(groups)
     if progress:
-        tqdm.write(family_summary(groups, chances))
+        tqdm.write(strata_summary(groups, *strata))
     val_groups = list(val.values()) if val is not None else None
     weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
     if init:
@@ -276,6 +293,10 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     else:
         model, started = RangeNet(spec), None
     model, weights = model.to(dev), weights.to(dev)
+    if dev.type == "cuda":  # crops are cut on the GPU: the images go there once
+        torch.backends.cudnn.benchmark = True  # few input shapes (one per image-shape group)
+        groups = [{**g, "images": torch.from_numpy(g["images"]).to(dev), "labels": torch.from_numpy(g["labels"]).to(dev)}
+                  for g in groups]
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
@@ -299,14 +320,14 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         if epoch and budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
             break  # (the first epoch always runs at least one step)
         model.train().set_circular(False)
-        conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
-        losses = []
+        conf = torch.zeros((C.NUM_CLASSES, C.NUM_CLASSES), dtype=torch.int64, device=dev)
+        losses = []  # tensors on the device: no wait for the GPU at every step
         te = time.perf_counter()
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step", disable=not progress,
                    leave=False)
-        for _ in bar:
-            x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng, chances)
-            inp, y = augment(x.to(dev, non_blocking=True), y.to(dev, non_blocking=True), cfg, g)
+        for step in bar:
+            x, y = sample_crops(groups, cfg.batch, cfg.crop_width, rng, strata)
+            inp, y = augment(x.to(dev), y.to(dev), cfg, g)
             logits = model(inp)
             loss = F.cross_entropy(logits, y, weight=weights, ignore_index=255)
             if cfg.lovasz > 0:
@@ -319,12 +340,14 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             loss.backward()
             opt.step()
             sched.step()
-            losses.append(loss.item())
-            conf += confusion(y.cpu().numpy(), logits.detach().argmax(1).cpu().numpy())
-            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
+            losses.append(loss.detach())
+            conf += confusion_on(y, logits.detach().argmax(1))
+            if step % 20 == 19:
+                bar.set_postfix(loss=f"{torch.stack(losses[-20:]).mean().item():.3f}")
             if budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
                 break  # time is up: finish this (partial) epoch with its validation
-        entry = {"epoch": epoch + 1, "loss": round(float(np.mean(losses)), 4), "train_miou": round(miou(conf), 4),
+        entry = {"epoch": epoch + 1, "loss": round(torch.stack(losses).mean().item(), 4),
+                 "train_miou": round(miou(conf.cpu().numpy()), 4),
                  "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
         if val is not None:
             vconf = evaluate_cache(model, val_groups)
