@@ -151,3 +151,21 @@ def test_train_on_a_device_this_machine_lacks_is_a_clear_error(office_bag, tmp_p
                  "--cache", str(tmp_path / "cache")]) == 2
     assert reason in capsys.readouterr().err
     assert not (tmp_path / "cache").exists()  # refused before any work
+
+
+def test_blend_writes_mixed_weights_and_refuses_another_network_or_a_bad_alpha(trained, tmp_path, capsys):
+    from topometric_ros.segmentation.checkpoint import SHIPPED, load_weights
+
+    rc, out = trained
+    assert rc == 0
+    tuned = out / "w" / "rangenet.pt"
+    assert main(["blend", str(tuned), str(tuned), "--alpha", "0.3", "--out", str(tmp_path / "b")]) == 0
+    card, state = load_weights(tmp_path / "b" / "rangenet.pt")
+    assert all(v.equal(load_weights(tuned)[1][k]) for k, v in state.items())  # a blend of one network with itself
+    assert card["training"]["blend"]["command"].startswith("topometric blend ")
+    assert "topometric quantize" in capsys.readouterr().out
+    assert main(["blend", str(SHIPPED), str(tuned), "--out", str(tmp_path / "c")]) == 2  # another context width
+    assert "different networks" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    with pytest.raises(SystemExit) as e:
+        main(["blend", str(SHIPPED), str(tuned), "--alpha", "2", "--out", str(tmp_path / "c")])
+    assert e.value.code == 2

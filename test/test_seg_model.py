@@ -369,3 +369,27 @@ def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
         segment_frame(type(f)(points=f.points, pose=f.pose, stamp=0.0), SegmentationConfig(mode="labels"))
     with pytest.raises(SegmentationError, match="needs a Segmenter"):
         segment_frame(f, cfg)
+
+
+def test_blend_is_linear_between_the_parent_and_the_tuned_weights(tmp_path):
+    from topometric_ros.segmentation.checkpoint import blend_weights
+
+    _, parent = _random_weights(tmp_path / "parent", seed=1)
+    _, tuned = _random_weights(tmp_path / "tuned", seed=2)
+    sp, st = load_weights(parent)[1], load_weights(tuned)[1]
+    ends = [load_weights(blend_weights(parent, tuned, a, tmp_path / f"b{a}"))[1] for a in (0.0, 1.0)]
+    for k in st:
+        assert torch.equal(ends[0][k], sp[k] if st[k].is_floating_point() else st[k]) and torch.equal(ends[1][k], st[k])
+    card, quarter = load_weights(blend_weights(parent, tuned, 0.25, tmp_path / "q", "topometric blend ..."))
+    for k, v in st.items():
+        if v.is_floating_point():
+            torch.testing.assert_close(quarter[k], 0.75 * sp[k] + 0.25 * v)
+    assert card["training"]["blend"]["alpha"] == 0.25
+    assert card["training"]["blend"]["parent_state_sha256"] == state_digest(sp)
+    assert card["metrics"]["val"] == {}  # the tuned run's validation result is not the blend's
+    other = RangeNet(ModelSpec(widths=(16, 24, 32)))
+    wrong = save_weights(other, model_card(other.spec, TrainConfig(), [], [], "test", [], 0, 0, 0.0), tmp_path / "w")
+    with pytest.raises(SegmentationError, match="different networks"):
+        blend_weights(parent, wrong, 0.5, tmp_path / "x")
+    with pytest.raises(SegmentationError, match=r"within \[0, 1\]"):
+        blend_weights(parent, tuned, 1.5, tmp_path / "x")

@@ -260,8 +260,9 @@ def _ints(text: str) -> tuple:
     return tuple(int(x) for x in text.split(",") if x.strip())
 
 
-def _number(kind: type, low: float, strictly: bool = False):
-    """argparse type: a finite ``kind`` (int: "whole number"; float) >= ``low``, or > ``low`` when ``strictly``."""
+def _number(kind: type, low: float, strictly: bool = False, high: float = math.inf):
+    """argparse type: a finite ``kind`` (int: "whole number"; float) >= ``low`` (> ``low`` when ``strictly``)
+    and <= ``high``."""
     word = "whole number" if kind is int else "number"
 
     def parse(text: str):
@@ -269,14 +270,16 @@ def _number(kind: type, low: float, strictly: bool = False):
             x = kind(text)
         except ValueError:
             x = float("nan")
-        if not math.isfinite(x) or not (x > low if strictly else x >= low):
-            raise argparse.ArgumentTypeError(f"expected a {word} {'>' if strictly else '>='} {low:g}, got {text!r}")
+        if not math.isfinite(x) or not (x > low if strictly else x >= low) or x > high:
+            bound = f"within [{low:g}, {high:g}]" if math.isfinite(high) else f"{'>' if strictly else '>='} {low:g}"
+            raise argparse.ArgumentTypeError(f"expected a {word} {bound}, got {text!r}")
         return x
     return parse
 
 
 _count, _positive = _number(int, 0), _number(int, 1)
 _positive_number, _non_negative = _number(float, 0.0, strictly=True), _number(float, 0.0)
+_fraction = _number(float, 0.0, high=1.0)
 
 
 def _words(text: str) -> tuple:
@@ -373,6 +376,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
     print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
           f"--weights {args.out}/rangenet.pt")
+    return 0
+
+
+def cmd_blend(args: argparse.Namespace) -> int:
+    import shlex
+
+    from .segmentation.checkpoint import blend_weights
+
+    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
+    path = blend_weights(args.parent, args.tuned, args.alpha, args.out, command)
+    print(f"wrote {path}: {1 - args.alpha:g} x {args.parent} + {args.alpha:g} x {args.tuned}")
+    print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
+          f"--weights {path}")
     return 0
 
 
@@ -495,6 +511,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--workers", type=_count, default=1, help="processes that build the projected-scan cache")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
     t.set_defaults(func=cmd_train)
+
+    b = sub.add_parser("blend", help="blend a fine-tuned network with the weights it started from (WiSE-FT)")
+    b.add_argument("parent", help="the weights the fine-tune started from")
+    b.add_argument("tuned", help="the fine-tuned weights (same network)")
+    b.add_argument("--alpha", type=_fraction, default=0.5, help="share of the tuned weights, 0..1")
+    b.add_argument("--out", required=True, help="output folder for rangenet.pt and model_card.json")
+    b.set_defaults(func=cmd_blend)
 
     e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
     e.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/test)")

@@ -139,3 +139,27 @@ def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
                                "bytes": path.stat().st_size}}
     (out / CARD_NAME).write_text(json.dumps(doc, indent=2))
     return path
+
+
+def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str | Path, command: str = "") -> Path:
+    """OUT/rangenet.pt = (1 - alpha) × parent + alpha × tuned, tensor by tensor (counters from ``tuned``):
+    a fine-tune blended with the weights it started from (WiSE-FT, Wortsman et al., CVPR 2022), which keeps
+    most of the fine-tune's gains while giving back less of what the parent did well. Both files must hold
+    the same network. The card is the tuned one's, with the blend recorded and its validation result dropped
+    (it was the tuned weights'). Returns the path."""
+    if not 0.0 <= alpha <= 1.0:
+        raise SegmentationError(f"blend alpha must be within [0, 1], got {alpha}")
+    card_p, state_p = load_weights(parent)
+    card_t, state_t = load_weights(tuned)
+    if card_p.get("model") != card_t.get("model"):
+        raise SegmentationError(f"{parent} and {tuned} hold different networks ({card_p.get('model')} vs "
+                                f"{card_t.get('model')}); only weights of one network blend")
+    state = {k: ((1 - alpha) * state_p[k].double() + alpha * v.double()).to(v.dtype) if v.is_floating_point() else v
+             for k, v in state_t.items()}
+    model = build_model(card_t, state, f"blend of {parent} and {tuned}")
+    card = json.loads(json.dumps(card_t))
+    card["training"]["blend"] = {"parent": str(parent), "parent_state_sha256": state_digest(state_p),
+                                 "tuned": str(tuned), "tuned_state_sha256": state_digest(state_t),
+                                 "alpha": alpha, "command": command}
+    card["metrics"] = {"val": {}, "note": "blended weights: the tuned run's validation result does not apply"}
+    return save_weights(model, card, out)
