@@ -530,7 +530,7 @@ def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_pat
         assert v["extrinsic"] == "tf_static" and v["windows"] == "1", v
         assert abs(float(v["window_end"]) - float(v["window_start"]) - 0.2) < 0.01, v  # scans 1-3 of a 10 Hz sweep
         assert int(v["scans_processed"]) == 3 and int(v["dropped_scans"]) == 0, v
-        assert int(v["n_planes"]) >= 3 * 12, v  # 12-117 planes a scan on these captures (topometric inspect)
+        assert int(v["n_planes"]) >= 3 * 12, v  # 13-96 planes a scan on these captures (topometric inspect)
         assert level(status) in ("OK", "WARN"), status.message  # 3 scans at 2.45 m/s, KISS-ICP poses: no ERROR
     finally:
         node.stop()

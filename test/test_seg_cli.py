@@ -168,4 +168,15 @@ def test_blend_writes_mixed_weights_and_refuses_another_network_or_a_bad_alpha(t
     assert "different networks" in capsys.readouterr().err and not (tmp_path / "c").exists()
     with pytest.raises(SystemExit) as e:
         main(["blend", str(SHIPPED), str(tuned), "--alpha", "2", "--out", str(tmp_path / "c")])
-    assert e.value.code == 2
+    assert e.value.code == 2 and "expected a number within [0, 1], got '2'" in capsys.readouterr().err
+
+
+def test_train_without_progress_draws_no_bars(office_bag, tmp_path, capsys):
+    from topometric_ros.segmentation.train import TrainConfig, train
+
+    bag, _ = office_bag
+    card = train([bag], tmp_path / "w", TrainConfig(epochs=1, crops_per_epoch=12, batch=6, every=10),
+                 cache_dir=tmp_path / "cache", progress=False)
+    assert len(card["training"]["history"]) == 1
+    err = capsys.readouterr().err
+    assert "epoch 1/1" not in err and "cache bags" not in err, err  # the per-step bar and the cache bar

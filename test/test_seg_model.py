@@ -329,6 +329,20 @@ def test_crops_are_the_images_columns_wrapping_around_on_any_device():
     assert wide.shape == (2, 4, 8, 64)  # a narrower image is cut at its own width
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_crops_cut_on_the_gpu_equal_those_cut_on_the_cpu():
+    rng = np.random.default_rng(5)
+    images = rng.normal(0, 5, (3, 4, 8, 64)).astype(np.float16)
+    labels = rng.integers(0, 7, (3, 8, 64)).astype(np.uint8)
+    cpu = [{"images": images, "labels": labels, "sensor": np.array(["VLP-32C"] * 3)}]
+    gpu = [{**cpu[0], "images": torch.from_numpy(images).cuda(), "labels": torch.from_numpy(labels).cuda()}]
+    x, y = sample_crops(cpu, 5, 48, np.random.default_rng(6))
+    xg, yg = sample_crops(gpu, 5, 48, np.random.default_rng(6))
+    assert xg.is_cuda and torch.equal(x, xg.cpu()) and torch.equal(y, yg.cpu())
+    truth, pred = y.cuda(), yg.flip(-1)
+    assert torch.equal(confusion_on(truth, pred).cpu(), confusion_on(y, pred.cpu()))
+
+
 def test_confusion_on_the_device_counts_as_metrics_confusion():
     rng = np.random.default_rng(4)
     truth = rng.integers(0, 9, (4, 16, 32))
@@ -386,6 +400,12 @@ def test_blend_is_linear_between_the_parent_and_the_tuned_weights(tmp_path):
             torch.testing.assert_close(quarter[k], 0.75 * sp[k] + 0.25 * v)
     assert card["training"]["blend"]["alpha"] == 0.25
     assert card["training"]["blend"]["parent_state_sha256"] == state_digest(sp)
+    assert not card["training"]["blend"]["tuned_from_parent"]  # two unrelated random networks
+    model = RangeNet(ModelSpec())
+    model.load_state_dict(st)
+    from_parent = save_weights(model, model_card(model.spec, TrainConfig(), [], [], "test", [], 0, 0, 0.0,
+                                                 init={"state_sha256": state_digest(sp)}), tmp_path / "ft")
+    assert load_weights(blend_weights(parent, from_parent, 0.5, tmp_path / "h"))[0]["training"]["blend"]["tuned_from_parent"]
     assert card["metrics"]["val"] == {}  # the tuned run's validation result is not the blend's
     other = RangeNet(ModelSpec(widths=(16, 24, 32)))
     wrong = save_weights(other, model_card(other.spec, TrainConfig(), [], [], "test", [], 0, 0, 0.0), tmp_path / "w")

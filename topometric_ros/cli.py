@@ -271,7 +271,8 @@ def _number(kind: type, low: float, strictly: bool = False, high: float = math.i
         except ValueError:
             x = float("nan")
         if not math.isfinite(x) or not (x > low if strictly else x >= low) or x > high:
-            bound = f"within [{low:g}, {high:g}]" if math.isfinite(high) else f"{'>' if strictly else '>='} {low:g}"
+            bound = (f"within {'(' if strictly else '['}{low:g}, {high:g}]" if math.isfinite(high)
+                     else f"{'>' if strictly else '>='} {low:g}")
             raise argparse.ArgumentTypeError(f"expected a {word} {bound}, got {text!r}")
         return x
     return parse

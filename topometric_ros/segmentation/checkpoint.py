@@ -145,8 +145,9 @@ def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str 
     """OUT/rangenet.pt = (1 - alpha) × parent + alpha × tuned, tensor by tensor (counters from ``tuned``):
     a fine-tune blended with the weights it started from (WiSE-FT, Wortsman et al., CVPR 2022), which keeps
     most of the fine-tune's gains while giving back less of what the parent did well. Both files must hold
-    the same network. The card is the tuned one's, with the blend recorded and its validation result dropped
-    (it was the tuned weights'). Returns the path."""
+    the same network. The card is the tuned one's, with the blend recorded (the parent by path and by its
+    tensors' digest, which names it even once the file is replaced; whether the tuned run started from it)
+    and its validation result dropped (it was the tuned weights'). Returns the path."""
     if not 0.0 <= alpha <= 1.0:
         raise SegmentationError(f"blend alpha must be within [0, 1], got {alpha}")
     card_p, state_p = load_weights(parent)
@@ -158,8 +159,10 @@ def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str 
              for k, v in state_t.items()}
     model = build_model(card_t, state, f"blend of {parent} and {tuned}")
     card = json.loads(json.dumps(card_t))
-    card["training"]["blend"] = {"parent": str(parent), "parent_state_sha256": state_digest(state_p),
+    parent_digest = state_digest(state_p)
+    card["training"]["blend"] = {"parent": str(parent), "parent_state_sha256": parent_digest,
                                  "tuned": str(tuned), "tuned_state_sha256": state_digest(state_t),
-                                 "alpha": alpha, "command": command}
+                                 "tuned_from_parent": (card_t["training"].get("init") or {}).get("state_sha256")
+                                 == parent_digest, "alpha": alpha, "command": command}
     card["metrics"] = {"val": {}, "note": "blended weights: the tuned run's validation result does not apply"}
     return save_weights(model, card, out)

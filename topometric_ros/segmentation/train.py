@@ -93,7 +93,7 @@ def network_input(xyz: torch.Tensor, intensity: torch.Tensor, valid: torch.Tenso
     return torch.cat([rng, xyz, intensity * v, v], 1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Stratum:
     """The images of one sensor model in one image-shape group of the cache."""
 
@@ -104,9 +104,9 @@ class Stratum:
 
 def sensor_strata(groups: Sequence[dict]) -> tuple[list[Stratum], np.ndarray]:
     """The (group, sensor) strata of the cache and each one's chance per batch: every sensor model gets an
-    equal share, split over its strata by image count. By shape, the ten Ouster models (one 32 x 1024 shape)
-    would share one seventh of the batches while a VLP-16 alone had another; and a non-repetitive scan's
-    image width follows its point count, so the Mid-360 fills several groups (some of one odd-width scan)."""
+    equal share, split over its strata by image count. (A share per image shape would give the ten Ouster
+    models, one 32 x 1024 shape, one share together and a VLP-16 one alone; and a non-repetitive scan's
+    image width follows its point count, so the Mid-360 fills several groups, some of one odd-width scan.)"""
     strata = [Stratum(i, str(s), np.flatnonzero(g["sensor"] == s))
               for i, g in enumerate(groups) for s in np.unique(g["sensor"])]
     per_sensor: dict[str, int] = {}
@@ -293,10 +293,31 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     else:
         model, started = RangeNet(spec), None
     model, weights = model.to(dev), weights.to(dev)
-    if dev.type == "cuda":  # crops are cut on the GPU: the images go there once
-        torch.backends.cudnn.benchmark = True  # few input shapes (one per image-shape group)
+    if dev.type == "cuda" and _fits_on(dev, groups):  # crops are cut on the GPU: the images go there once
         groups = [{**g, "images": torch.from_numpy(g["images"]).to(dev), "labels": torch.from_numpy(g["labels"]).to(dev)}
                   for g in groups]
+    benchmark = torch.backends.cudnn.benchmark
+    torch.backends.cudnn.benchmark = dev.type == "cuda"  # few input shapes (one per image-shape group)
+    try:
+        return _train_loop(model, weights, groups, strata, val, val_groups, cfg, spec, bags, val_bags, command,
+                           started, out, rng, g, dev, progress, t0)
+    finally:
+        torch.backends.cudnn.benchmark = benchmark
+
+
+def _fits_on(dev: torch.device, groups: Sequence[dict], share: float = 0.6) -> bool:
+    """Whether the cached images and labels take at most ``share`` of the GPU's free memory (the rest is for
+    the network's activations); when not, crops are cut on the CPU and copied over."""
+    free, _ = torch.cuda.mem_get_info(dev)
+    need = sum(g["images"].nbytes + g["labels"].nbytes for g in groups)
+    return need <= share * free
+
+
+def _train_loop(model, weights, groups, strata, val, val_groups, cfg: TrainConfig, spec: ModelSpec, bags, val_bags,
+                command: str, started, out, rng, g, dev, progress: bool, t0: float) -> dict:
+    """The optimisation loop of :func:`train` (its arguments as set up there); returns the model card."""
+    from tqdm import tqdm
+
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
@@ -304,7 +325,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     budget_s = 60.0 * cfg.max_minutes
     t_loop = time.perf_counter()
 
-    def progress(step: int) -> float:
+    def done_fraction(step: int) -> float:
         """Fraction of the run done: by steps, or by the time budget when that is further along."""
         done = (step - warmup) / max(1, total - warmup)
         if budget_s > 0:
@@ -312,7 +333,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
         return min(1.0, done)
 
     sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * progress(s))))
+        opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * done_fraction(s))))
     history, best, best_state = [], -1.0, None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -321,7 +342,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
             break  # (the first epoch always runs at least one step)
         model.train().set_circular(False)
         conf = torch.zeros((C.NUM_CLASSES, C.NUM_CLASSES), dtype=torch.int64, device=dev)
-        losses = []  # tensors on the device: no wait for the GPU at every step
+        losses = []  # tensors on the device: no copy back to the CPU at every step
         te = time.perf_counter()
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step", disable=not progress,
                    leave=False)
