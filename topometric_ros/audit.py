@@ -38,6 +38,7 @@ import numpy as np
 
 from .config import Config, flatten
 from .reports import write_csv, write_json
+from .storage import is_bag_folder
 
 MANIFEST = "audit.json"
 REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
@@ -58,7 +59,7 @@ def _is_bag(p: Path) -> bool:
         return False  # an audit's own output (its diagnostics.mcap), not a bag
     if p.is_file():
         return p.suffix in (".mcap", ".db3")
-    return p.is_dir() and ((p / "metadata.yaml").is_file() or any(p.glob("*.mcap")) or any(p.glob("*.db3")))
+    return is_bag_folder(p)
 
 
 def find_bags(args: Iterable[str]) -> list[Path]:

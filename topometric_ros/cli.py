@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import signal
 import sys
 import threading
@@ -356,8 +357,6 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    import shlex
-
     from .segmentation.data import expand_bags
     from .segmentation.model import ModelSpec
     from .segmentation.train import TrainConfig, train
@@ -369,40 +368,37 @@ def cmd_train(args: argparse.Namespace) -> int:
                      context=tuple(int(d) for d in args.context.split(",")))
     bags = expand_bags(args.bags)
     val = expand_bags(args.val) if args.val else []
-    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
-    card = train(bags, args.out, cfg, spec, val, args.cache, command, init=args.init or None)
+    card = train(bags, args.out, cfg, spec, val, args.cache, args.command_line, init=args.init or None)
     val_m = card["metrics"].get("val", {})
     if "val_miou" in val_m:
         print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
-    print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
-          f"--weights {args.out}/rangenet.pt")
+    _quantize_hint(f"{args.out}/rangenet.pt")
     return 0
 
 
 def cmd_blend(args: argparse.Namespace) -> int:
-    import shlex
-
     from .segmentation.checkpoint import blend_weights
 
-    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
-    path = blend_weights(args.parent, args.tuned, args.alpha, args.out, command)
+    path = blend_weights(args.parent, args.tuned, args.alpha, args.out, args.command_line)
     print(f"wrote {path}: {1 - args.alpha:g} x {args.parent} + {args.alpha:g} x {args.tuned}")
-    print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
-          f"--weights {path}")
+    _quantize_hint(path)
     return 0
 
 
-def cmd_quantize(args: argparse.Namespace) -> int:
-    import shlex
+def _quantize_hint(weights) -> None:
+    """New weights have no int8 activation ranges yet: say how to make them."""
+    print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
+          f"--weights {weights}")
 
+
+def cmd_quantize(args: argparse.Namespace) -> int:
     from .segmentation.checkpoint import SHIPPED
     from .segmentation.data import expand_bags
     from .segmentation.quantize import make_ranges
 
     bags = expand_bags(args.bags)
-    command = "topometric " + " ".join(shlex.quote(a) for a in (args.argv or []))
-    path = make_ranges(bags, args.weights or SHIPPED, args.every, command)
+    path = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
     print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
     return 0
 
@@ -669,7 +665,7 @@ def _terminated(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    args.argv = list(sys.argv[1:] if argv is None else argv)
+    args.command_line = "topometric " + shlex.join(sys.argv[1:] if argv is None else argv)  # for model cards
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:

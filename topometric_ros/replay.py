@@ -157,8 +157,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     speed = _speed(opt.rate)
     if not Path(bag_path).exists():
         raise bag.BagError(f"bag not found: {bag_path}")
-    if Path(bag_path).is_dir() and not any(p.name == "metadata.yaml" or p.suffix in (".mcap", ".db3")
-                                           for p in Path(bag_path).iterdir()):
+    if Path(bag_path).is_dir() and not storage.is_bag_folder(bag_path):
         raise bag.BagError(f"no rosbag2 bag at {bag_path} (a bag folder has metadata.yaml and .mcap or .db3 files)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -112,6 +112,12 @@ class ReadLog:
 
 
 # ------------------------------------------------------------------ files of a bag
+def is_bag_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a folder holding a rosbag2 bag: its metadata.yaml or storage files (*.mcap, *.db3)."""
+    path = Path(path)
+    return path.is_dir() and any(p.name == "metadata.yaml" or p.suffix in (".mcap", ".db3") for p in path.iterdir())
+
+
 def bag_files(path: str | Path) -> list[Path]:
     """The storage files of a bag folder (metadata.yaml's list when it has one and they exist, else its
     *.mcap and *.db3 files in split order) or the file itself. Unsupported for a compressed bag."""

@@ -158,7 +158,7 @@ def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str 
     state = {k: ((1 - alpha) * state_p[k].double() + alpha * v.double()).to(v.dtype) if v.is_floating_point() else v
              for k, v in state_t.items()}
     model = build_model(card_t, state, f"blend of {parent} and {tuned}")
-    card = json.loads(json.dumps(card_t))
+    card = card_t  # loaded here, ours to change
     parent_digest = state_digest(state_p)
     card["training"]["blend"] = {"parent": str(parent), "parent_state_sha256": parent_digest,
                                  "tuned": str(tuned), "tuned_state_sha256": state_digest(state_t),

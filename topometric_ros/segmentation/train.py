@@ -298,11 +298,17 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
                   for g in groups]
     benchmark = torch.backends.cudnn.benchmark
     torch.backends.cudnn.benchmark = dev.type == "cuda"  # few input shapes (one per image-shape group)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     try:
-        return _train_loop(model, weights, groups, strata, val, val_groups, cfg, spec, bags, val_bags, command,
-                           started, out, rng, g, dev, progress, t0)
+        model, history, selected = _train_loop(model, weights, groups, strata, val_groups, cfg, rng, g, out, progress)
     finally:
         torch.backends.cudnn.benchmark = benchmark
+    card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
+                      sum(len(g["images"]) for g in groups), count_parameters(model), time.perf_counter() - t0,
+                      selected, started)
+    save_weights(model, card, out)
+    return card
 
 
 def _fits_on(dev: torch.device, groups: Sequence[dict], share: float = 0.6) -> bool:
@@ -313,11 +319,14 @@ def _fits_on(dev: torch.device, groups: Sequence[dict], share: float = 0.6) -> b
     return need <= share * free
 
 
-def _train_loop(model, weights, groups, strata, val, val_groups, cfg: TrainConfig, spec: ModelSpec, bags, val_bags,
-                command: str, started, out, rng, g, dev, progress: bool, t0: float) -> dict:
-    """The optimisation loop of :func:`train` (its arguments as set up there); returns the model card."""
+def _train_loop(model: RangeNet, weights: torch.Tensor, groups: Sequence[dict], strata, val_groups, cfg: TrainConfig,
+                rng: np.random.Generator, g: torch.Generator, out: Path, progress: bool) -> tuple[RangeNet, list, int]:
+    """The optimisation loop of :func:`train` (its arguments as set up there, on the model's device; OUT gets
+    train_log.json after every epoch): (the model on the CPU with the saved epoch's weights, the history, that
+    epoch (1-based; 0 = the last))."""
     from tqdm import tqdm
 
+    dev = next(model.parameters()).device
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, cfg.crops_per_epoch // cfg.batch)
     total = steps_per_epoch * cfg.epochs
@@ -335,8 +344,6 @@ def _train_loop(model, weights, groups, strata, val, val_groups, cfg: TrainConfi
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: (s + 1) / warmup if s < warmup else 0.5 * (1 + math.cos(math.pi * done_fraction(s))))
     history, best, best_state = [], -1.0, None
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     for epoch in range(cfg.epochs):
         if epoch and budget_s > 0 and time.perf_counter() - t_loop >= budget_s:
             break  # (the first epoch always runs at least one step)
@@ -370,7 +377,7 @@ def _train_loop(model, weights, groups, strata, val, val_groups, cfg: TrainConfi
         entry = {"epoch": epoch + 1, "loss": round(torch.stack(losses).mean().item(), 4),
                  "train_miou": round(miou(conf.cpu().numpy()), 4),
                  "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
-        if val is not None:
+        if val_groups is not None:
             vconf = evaluate_cache(model, val_groups)
             entry["val_miou"] = round(miou(vconf), 4)
             entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
@@ -388,8 +395,4 @@ def _train_loop(model, weights, groups, strata, val, val_groups, cfg: TrainConfi
     if best_state is not None:
         model.load_state_dict(best_state)
         selected = max(e["epoch"] for e in history if e.get("best"))
-    card = model_card(spec, cfg, [str(b) for b in bags], [str(b) for b in val_bags], command, history,
-                      sum(len(g["images"]) for g in groups), count_parameters(model), time.perf_counter() - t0,
-                      selected, started)
-    save_weights(model, card, out)
-    return card
+    return model, history, selected
