@@ -84,8 +84,8 @@ def test_k_zero_returns_the_input_and_a_uniform_scan_is_unchanged():
 
 
 def test_the_segmenter_votes_after_the_network_and_the_vote_does_not_lower_miou_on_simulated_scans():
-    plain = Segmenter.from_config(replace(SegmentationConfig(), knn=0))
-    voting = Segmenter.from_config(replace(SegmentationConfig(), knn=3))
+    plain = Segmenter.from_config(replace(SegmentationConfig(), knn=0, floor_band=0))
+    voting = Segmenter.from_config(replace(SegmentationConfig(), knn=3, floor_band=0))
     frames, _ = simulated_frames("office2", 2, seed=4242)
     before = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
     after = before.copy()

@@ -25,6 +25,7 @@ from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
+from .floor import lift_off_floor
 from .knn import knn_vote
 from .quantize import cpu_has_vnni, load_ranges, quantize
 
@@ -177,11 +178,13 @@ class Segmenter:
     segmented (projection.beam_stride), the rows between take the labels of their nearest neighbours in the
     rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
     then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
+    ``floor_band`` (> 0, m): last, floor-labelled points standing more than that above the floor take their
+    non-floor neighbours' label (floor.lift_off_floor).
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
-                 knn_distance: float = 0.5, int8_ranges: dict | None = None):
+                 knn_distance: float = 0.5, int8_ranges: dict | None = None, floor_band: float = 0.0):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
@@ -189,7 +192,10 @@ class Segmenter:
             raise SegmentationError(f"segmentation.max_beams must be a whole number >= 0, got {max_beams}")
         if knn != int(knn) or knn < 0:
             raise SegmentationError(f"segmentation.knn must be a whole number >= 0, got {knn}")
+        if not floor_band >= 0:
+            raise SegmentationError(f"segmentation.floor_band must be >= 0 m, got {floor_band}")
         self.threads = threads
+        self.floor_band = float(floor_band)
         self.max_beams = int(max_beams)
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
@@ -210,7 +216,7 @@ class Segmenter:
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
-                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state))
+                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state), cfg.floor_band)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -238,6 +244,8 @@ class Segmenter:
                 out[i] = _spread(proj.unproject(labels[start:stop]), proj.unproject(conf[start:stop]), source)
                 if self.knn:
                     out[i] = knn_vote(*scans[i][:2], *out[i], self.knn, self.knn_distance)
+                if self.floor_band:
+                    out[i] = lift_off_floor(*scans[i][:2], *out[i], self.floor_band)
                 start = stop
         return out
 

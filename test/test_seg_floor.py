@@ -1,0 +1,184 @@
+"""Floor labels checked against the floor around them (segmentation/floor.py, config segmentation.floor_band)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from topometric_ros import classes as C
+from topometric_ros.config import SegmentationConfig
+from topometric_ros.geometry import rotvec_to_matrix
+from topometric_ros.grid import ScanGrid, as_grid
+from topometric_ros.segmentation import floor as F
+from topometric_ros.segmentation.checkpoint import SegmentationError
+from topometric_ros.segmentation.infer import Segmenter
+from topometric_ros.segmentation.metrics import confusion, miou
+from topometric_ros.sim.frames import simulated_frames
+
+BAND = 0.04
+ROWS, COLS = 12, 60
+
+
+def _room():
+    """A scan 1 m above a flat floor, as a 12 x 60 grid: rows 0-5 floor (x 2-2.5 m, y every 5 cm), with a chair's
+    foot (rows 3-4, columns 28-32) 6 cm above the floor that the network called floor, and the chair itself
+    (rows 6-8, columns 26-34) just behind it; rows 9-11 a wall at x 4 m. Points, grid, labels, confidence 0.9
+    (the chair's 0.7) and the foot's indices."""
+    r, c = np.meshgrid(np.arange(ROWS), np.arange(COLS), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    y = 0.05 * (c - COLS / 2)
+    points = np.stack([2 + 0.1 * r, y, np.full(r.size, -1.0)], 1)
+    labels = np.full(r.size, C.FLOOR, np.uint8)
+    conf = np.full(r.size, 0.9, np.float32)
+    foot = np.flatnonzero((r >= 3) & (r <= 4) & (c >= 28) & (c <= 32))
+    points[foot, 2] += 0.06
+    chair = (r >= 6) & (r <= 8)
+    keep = ~chair | ((c >= 26) & (c <= 34))  # the chair's rows hold only the chair
+    points[chair, 0], points[chair, 2] = 2.3, -0.9 + 0.1 * (r[chair] - 6)
+    labels[chair], conf[chair] = C.CHAIR, 0.7
+    wall = r >= 9
+    points[wall, 0], points[wall, 2] = 4.0, -1.0 + 0.3 * (r[wall] - 9)
+    labels[wall] = C.WALL
+    index = np.cumsum(keep) - 1
+    grid = ScanGrid(r[keep].astype(np.int32), c[keep].astype(np.int32), ROWS, COLS, np.zeros(ROWS), "test")
+    return points[keep].astype(np.float32), grid, labels[keep], conf[keep], index[foot]
+
+
+def test_a_chair_foot_labelled_floor_takes_the_chair_label_and_the_floor_stays_floor():
+    points, grid, labels, conf, foot = _room()
+    out, out_conf = F.lift_off_floor(points, grid, labels, conf, BAND)
+    assert np.all(out[foot] == C.CHAIR)
+    assert np.allclose(out_conf[foot], 0.7)  # its voters' confidence
+    rest = np.setdiff1d(np.arange(len(points)), foot)
+    assert np.array_equal(out[rest], labels[rest]) and np.array_equal(out_conf[rest], conf[rest])
+    normal, offset = F.floor_plane(points, labels)
+    assert np.allclose(normal, [0, 0, 1], atol=1e-6) and offset == pytest.approx(-1.0, abs=1e-6)  # trimmed: the foot is out
+
+
+def test_a_foot_lower_than_the_band_or_beyond_reach_stays_floor():
+    points, grid, labels, conf, foot = _room()
+    points[foot, 2] = -1.0 + 0.03
+    assert np.array_equal(F.lift_off_floor(points, grid, labels, conf, BAND)[0], labels)
+    points[foot, 2] = -1.0 + F.REACH + 0.05  # another level
+    assert np.array_equal(F.lift_off_floor(points, grid, labels, conf, BAND)[0], labels)
+
+
+@pytest.mark.parametrize("pitch_deg", [15.0, -30.0])
+def test_a_tilted_sensor_gets_the_same_labels(pitch_deg):
+    points, grid, labels, conf, foot = _room()
+    turned = (points.astype(np.float64) @ rotvec_to_matrix(np.array([0.1, np.radians(pitch_deg), 0.3])).T).astype(np.float32)
+    assert np.array_equal(F.lift_off_floor(turned, grid, labels, conf, BAND)[0],
+                          F.lift_off_floor(points, grid, labels, conf, BAND)[0])
+
+
+def test_a_floor_tilted_beyond_45_degrees_from_the_sensor_or_too_few_floor_points_change_nothing():
+    points, grid, labels, conf, _ = _room()
+    steep = (points.astype(np.float64) @ rotvec_to_matrix(np.array([0.0, np.radians(50.0), 0.0])).T).astype(np.float32)
+    assert F.floor_plane(steep, labels) is None
+    assert np.array_equal(F.lift_off_floor(steep, grid, labels, conf, BAND)[0], labels)
+    few = labels.copy()
+    few[np.flatnonzero(few == C.FLOOR)[F.MIN_FLOOR_POINTS - 1:]] = C.WALL
+    assert F.floor_plane(points, few) is None
+    out, out_conf = F.lift_off_floor(points, grid, labels, conf, 0.0)
+    assert out is labels and out_conf is conf
+
+
+def test_floor_that_rises_gently_beside_a_wall_stays_floor_the_step_must_be_local():
+    """A floor rising 5 % from x = 6 m (up to 9 cm above the flat part) next to a wall: every floor point stays
+    floor. Judged against the floor plane alone (the flat part's), the rising points by the wall would go to the
+    wall; within 1 m (the grid window's 0.6 m along x here) the floor rises less than the band."""
+    r, c = np.meshgrid(np.arange(40), np.arange(40), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    x = 0.2 * r
+    wall = c >= 36
+    points = np.stack([x, 0.1 * c, -1.0 + 0.05 * np.clip(x - 6.0, 0, None)], 1)
+    points[wall, 1], points[wall, 2] = 3.6, -1.0 + 0.2 * (c[wall] - 35)
+    labels = np.where(wall, C.WALL, C.FLOOR).astype(np.uint8)
+    grid = ScanGrid(r.astype(np.int32), c.astype(np.int32), 40, 40, np.zeros(40), "test")
+    conf = np.ones(len(points), np.float32)
+    points = points.astype(np.float32)
+    normal, offset = F.floor_plane(points, labels)
+    above = (labels == C.FLOOR) & (points @ normal - offset > BAND)
+    assert above.sum() > 50 and np.allclose(normal, [0, 0, 1], atol=0.01)  # about the flat part's plane
+    assert np.array_equal(F.lift_off_floor(points, grid, labels, conf, BAND)[0], labels)
+    points[:, 2] = np.where(wall, points[:, 2], -1.0 + np.where(r >= 34, 0.09, 0.0))  # a 9 cm step instead:
+    by_the_step = (r >= 34) & (r <= 36) & (c >= 30) & ~wall  # its top by the wall goes to the wall
+    assert (F.lift_off_floor(points, grid, labels, conf, BAND)[0][by_the_step] == C.WALL).all()
+
+
+def _reference(points, grid, labels, conf, band, distance, window):
+    """lift_off_floor's rule written plainly, on the same floor plane."""
+    normal, offset = F.floor_plane(points, labels)
+    p = points.astype(np.float64)
+    h = p @ normal - offset
+    at = {}
+    for i, cell in enumerate(zip(grid.row, grid.col)):
+        at.setdefault(cell, []).append(i)
+    out, out_conf = labels.copy(), conf.copy()
+    rows, cols = window
+    for i in np.flatnonzero((labels == C.FLOOR) & (h > band) & (h <= F.REACH)):
+        near = []
+        for dr in range(-(rows // 2), rows - rows // 2):
+            for dc in range(-(cols // 2), cols - cols // 2):
+                if 0 <= grid.row[i] + dr < grid.height:
+                    near += at.get((grid.row[i] + dr, (grid.col[i] + dc) % grid.width), [])
+        near = [j for j in near if np.sum((p[j] - p[i]) ** 2) <= distance ** 2]
+        lowest = min([h[i]] + [h[j] for j in near if labels[j] == C.FLOOR])
+        voters = sorted((np.sum((p[j] - p[i]) ** 2), j) for j in near if labels[j] != C.FLOOR)[:F.VOTERS]
+        if not voters or h[i] - lowest <= band:
+            continue
+        classes = [labels[j] for _, j in voters]
+        top = max(classes.count(k) for k in classes)
+        win = next(k for k in classes if classes.count(k) == top)
+        out[i] = win
+        out_conf[i] = np.mean([conf[j] for _, j in voters if labels[j] == win])
+    return out, out_conf
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_check_matches_its_rule_written_plainly_on_random_scans(seed):
+    """Random points on a small grid (cells empty, some shared): a floor near z = -1 with bumps labelled floor,
+    and chair / wall / other points above: the compiled check gives the plain rule's labels and confidence."""
+    rng = np.random.default_rng(seed)
+    height, width, n = 8, 30, 600
+    row, col = rng.integers(0, height, n).astype(np.int32), rng.integers(0, width, n).astype(np.int32)
+    az = 2 * np.pi * col / width
+    dist = 1.5 + 0.3 * row + 0.2 * rng.random(n)
+    labels = rng.choice([C.FLOOR, C.WALL, C.CHAIR, C.OTHER], n, p=[0.7, 0.1, 0.1, 0.1]).astype(np.uint8)
+    z = np.where(labels == C.FLOOR, -1.0 + 0.01 * rng.standard_normal(n), -1.0 + rng.random(n))
+    bumps = (labels == C.FLOOR) & (rng.random(n) < 0.2)
+    z[bumps] += 0.02 + 0.25 * rng.random(bumps.sum())
+    points = np.stack([dist * np.cos(az), dist * np.sin(az), z], 1).astype(np.float32)
+    conf = rng.random(n).astype(np.float32)
+    grid = ScanGrid(row, col, height, width, np.zeros(height), "test")
+    for distance, window in ((1.0, F.WINDOW), (0.5, (3, 5)), (2.0, (5, 3))):
+        want = _reference(points, grid, labels, conf, BAND, distance, window)
+        got = F.lift_off_floor(points, grid, labels, conf, BAND, distance, window)
+        assert np.array_equal(got[0], want[0])
+        assert np.allclose(got[1], want[1], atol=1e-6)
+    assert (F.lift_off_floor(points, grid, labels, conf, BAND)[0] != labels).any()  # the check had work to do
+
+
+def test_the_segmenter_checks_the_floor_last_and_it_does_not_lower_miou_on_simulated_scans():
+    plain = Segmenter.from_config(replace(SegmentationConfig(), floor_band=0))
+    checked = Segmenter.from_config(SegmentationConfig())
+    assert checked.floor_band == SegmentationConfig().floor_band > 0
+    frames, _ = simulated_frames("office2", 2, seed=4242)
+    before = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+    after = before.copy()
+    for f in frames:
+        points = np.asarray(f.points, np.float32)
+        labels, conf = plain.predict(f.points, f.ring, f.intensity)
+        got, got_conf = checked.predict(f.points, f.ring, f.intensity)
+        want, want_conf = F.lift_off_floor(points, as_grid(points, f.ring), labels, conf, checked.floor_band)
+        assert np.array_equal(got, want) and np.array_equal(got_conf, want_conf)
+        assert 0 < np.count_nonzero(got != labels) < 0.01 * len(labels)
+        before += confusion(f.labels, labels)
+        after += confusion(f.labels, got)
+    assert miou(after) >= miou(before)
+
+
+def test_a_negative_band_is_refused():
+    with pytest.raises(SegmentationError, match="segmentation.floor_band"):
+        Segmenter.from_config(replace(SegmentationConfig(), floor_band=-0.01))

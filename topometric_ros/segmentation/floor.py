@@ -1,0 +1,229 @@
+"""Floor labels checked against the floor around them.
+
+The network's commonest floor error is the foot of a chair or desk (a base or wheels 3-10 cm above the
+floor) labelled floor: in the range image it continues the floor. Here a plane is fitted to the scan's
+floor-labelled points (trimmed least squares) to say which way is up and roughly where the floor is. A
+floor-labelled point more than ``band`` above that plane (and at most REACH above: higher up it is another
+level, a ramp or a step) and more than ``band`` above the lowest floor-labelled point within DISTANCE of it
+(real floors are not one plane: the step must be local) takes the majority label of the VOTERS nearest
+non-floor points within DISTANCE (a tie: the nearest voter's class among the tied); with none there it stays
+floor. Neighbours are searched among the grid cells of a WINDOW around the point's own (azimuth wraps around).
+Points are in the SENSOR frame, metres. Chosen on the validation layout (docs/results.md, sixteenth session).
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .. import classes as C
+from ..grid import ScanGrid
+
+#: Fewest floor-labelled points the plane is fitted to (fewer: labels unchanged).
+MIN_FLOOR_POINTS = 50
+#: Most floor-labelled points the fit uses (an even subsample of them beyond).
+FIT_POINTS = 1024
+#: m, points at most this far from the plane always count in the trimmed fit; beyond, the closest 80 %.
+FIT_TOLERANCE = 0.03
+#: Least cosine between the fitted floor normal and the sensor's z axis (45 deg): a steeper "floor" is no floor.
+MIN_UPRIGHT = np.cos(np.radians(45.0))
+#: m, floor-labelled points higher than this above the plane are left alone (another level, not a chair's foot).
+REACH = 0.3
+#: Non-floor points that vote on a lifted point's label.
+VOTERS = 5
+#: m, neighbours (floor points for the local step, other points as voters) are at most this far away.
+DISTANCE = 1.0
+#: Rows x columns of grid cells around a lifted point searched for neighbours.
+WINDOW = (7, 15)
+
+
+def floor_plane(points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(unit normal (3,) pointing up, offset m) of the plane through the floor-labelled points (sensor frame;
+    height above it = points @ normal − offset), or None with fewer than MIN_FLOOR_POINTS of them or a plane
+    tilted more than 45 deg from the sensor's x-y plane. Four rounds of least squares, each on the points
+    within FIT_TOLERANCE of the last plane or its closest 80 %."""
+    floor = np.flatnonzero(labels == C.FLOOR)
+    if len(floor) < MIN_FLOOR_POINTS:
+        return None
+    normal, centre = _fit(np.asarray(points)[floor[::-(-len(floor) // FIT_POINTS)]].astype(np.float64),
+                          FIT_TOLERANCE)
+    if not normal[2] >= MIN_UPRIGHT:  # NaN too (a degenerate fit)
+        return None
+    return normal, float(normal @ centre)
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit(p, tolerance):
+    """(unit normal pointing up, centroid) of the points (n, 3): four rounds of least squares, each on the points
+    within ``tolerance`` of the last plane or its closest 80 %."""
+    n = len(p)
+    keep = np.ones(n, np.bool_)
+    normal = np.full(3, np.nan)
+    centre = np.zeros(3)
+    dist = np.empty(n)
+    for _ in range(4):
+        count = 0
+        centre[:] = 0.0
+        for i in range(n):
+            if keep[i]:
+                count += 1
+                centre += p[i]
+        if count < 3:
+            return np.full(3, np.nan), centre
+        centre /= count
+        cov = np.zeros((3, 3))
+        for i in range(n):
+            if keep[i]:
+                for a in range(3):
+                    for b in range(3):
+                        cov[a, b] += (p[i, a] - centre[a]) * (p[i, b] - centre[b])
+        normal = np.linalg.eigh(cov)[1][:, 0]  # the direction of least spread
+        if normal[2] < 0:
+            normal = -normal
+        for i in range(n):
+            dist[i] = abs((p[i, 0] - centre[0]) * normal[0] + (p[i, 1] - centre[1]) * normal[1]
+                          + (p[i, 2] - centre[2]) * normal[2])
+        k = int(0.8 * (n - 1))
+        cut = max(tolerance, np.partition(dist, k)[k])
+        for i in range(n):
+            keep[i] = dist[i] <= cut
+    return normal, centre
+
+
+def lift_off_floor(points: np.ndarray, grid: ScanGrid, labels: np.ndarray, confidence: np.ndarray, band: float,
+                   distance: float = DISTANCE, window: tuple[int, int] = WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,) uint8, confidence (N,) float32) with floor-labelled points standing more than ``band`` m
+    above the floor (the plane and the floor within ``distance`` m around them; module docstring) relabelled by
+    their nearest non-floor neighbours; a relabelled point takes the mean confidence of the neighbours that voted
+    for its new label. Points (N, 3) in the sensor frame on their grid. ``band`` <= 0 or no floor plane: the
+    input unchanged."""
+    labels = np.asarray(labels, np.uint8)
+    confidence = np.asarray(confidence, np.float32)
+    plane = floor_plane(points, labels) if band > 0 and len(points) else None
+    if plane is None:
+        return labels, confidence
+    out_labels, out_conf = labels.copy(), confidence.copy()
+    _relabel(np.ascontiguousarray(points, np.float32), np.asarray(grid.row), np.asarray(grid.col), grid.height,
+             grid.width, labels, confidence, plane[0], plane[1], float(band), REACH, int(window[0]), int(window[1]),
+             float(distance) ** 2, VOTERS, C.FLOOR, C.NUM_CLASSES, out_labels, out_conf)
+    return out_labels, out_conf
+
+
+@numba.njit(cache=True, nogil=True)
+def _relabel(points, row, col, height, width, labels, conf, normal, offset, band, reach, rows, columns, distance2,
+             voters, floor, classes, out_labels, out_conf):
+    """Set out_labels / out_conf of the floor points between band and reach above the plane (normal, offset), and
+    more than band above the floor points within sqrt(distance2) of them, to the vote of their ``voters`` nearest
+    non-floor points (lift_off_floor)."""
+    lifted = _lifted(points, labels, normal, offset, band, reach, floor)
+    if len(lifted) == 0:
+        return
+    start, members = _cell_members(row, col, height, width, lifted, rows, columns)
+    best_d = np.empty(voters)
+    best_j = np.empty(voters, np.int64)
+    votes = np.zeros(classes)
+    for i in lifted:
+        found = 0
+        h_i = points[i, 0] * normal[0] + points[i, 1] * normal[1] + points[i, 2] * normal[2]
+        lowest = h_i  # of the floor-labelled points near it (height above the plane + offset)
+        for dr in range(-(rows // 2), rows - rows // 2):
+            r = row[i] + dr
+            if r < 0 or r >= height:
+                continue
+            for dc in range(-(columns // 2), columns - columns // 2):
+                cell = r * width + (col[i] + dc) % width
+                for m in range(start[cell], start[cell + 1]):
+                    j = members[m]
+                    d = (points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2 \
+                        + (points[i, 2] - points[j, 2]) ** 2
+                    if d > distance2:
+                        continue
+                    if labels[j] == floor:
+                        lowest = min(lowest, points[j, 0] * normal[0] + points[j, 1] * normal[1]
+                                     + points[j, 2] * normal[2])
+                    else:
+                        found = _keep_nearest(best_d, best_j, found, d, j)
+        if found and h_i - lowest > band:
+            out_labels[i], out_conf[i] = _vote(labels, conf, best_j[:found], classes)
+
+
+@numba.njit(cache=True, nogil=True)
+def _lifted(points, labels, normal, offset, band, reach, floor):
+    """Indices of the floor-labelled points more than band and at most reach above the plane (normal, offset)."""
+    lifted = np.empty(len(points), np.int64)
+    n = 0
+    for i in range(len(points)):
+        if labels[i] == floor:
+            h = points[i, 0] * normal[0] + points[i, 1] * normal[1] + points[i, 2] * normal[2] - offset
+            if band < h <= reach:
+                lifted[n] = i
+                n += 1
+    return lifted[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_members(row, col, height, width, lifted, rows, columns):
+    """(start (cells + 1,), members): the points of each grid cell within a rows x columns window of a lifted
+    point are members[start[cell]:start[cell + 1]] (a counting sort by cell; other cells are empty)."""
+    cells = height * width
+    wanted = np.zeros(cells, np.bool_)
+    for i in lifted:
+        for dr in range(-(rows // 2), rows - rows // 2):
+            r = row[i] + dr
+            if 0 <= r < height:
+                for dc in range(-(columns // 2), columns - columns // 2):
+                    wanted[r * width + (col[i] + dc) % width] = True
+    start = np.zeros(cells + 1, np.int64)
+    for i in range(len(row)):
+        cell = row[i] * width + col[i]
+        if wanted[cell]:
+            start[cell + 1] += 1
+    for c in range(cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    members = np.empty(start[cells], np.int64)
+    for i in range(len(row)):
+        cell = row[i] * width + col[i]
+        if wanted[cell]:
+            members[fill[cell]] = i
+            fill[cell] += 1
+    return start, members
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep_nearest(best_d, best_j, found, d, j):
+    """Insert point j at squared distance d into the ascending best_d / best_j (capacity len(best_d)); returns how
+    many they hold."""
+    if found < len(best_d):
+        k = found
+        found += 1
+    elif d < best_d[-1]:
+        k = len(best_d) - 1
+    else:
+        return found
+    while k > 0 and best_d[k - 1] > d:
+        best_d[k] = best_d[k - 1]
+        best_j[k] = best_j[k - 1]
+        k -= 1
+    best_d[k] = d
+    best_j[k] = j
+    return found
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote(labels, conf, voters, classes):
+    """(label, confidence) of the majority of ``voters`` (nearest first; a tie goes to the class of the nearest
+    voter among the tied) and the mean confidence of the voters for it."""
+    votes = np.zeros(classes)
+    for j in voters:
+        votes[labels[j]] += 1.0
+    top = votes.max()
+    winner = labels[voters[0]]
+    for j in voters:
+        if votes[labels[j]] == top:
+            winner = labels[j]
+            break
+    total = 0.0
+    for j in voters:
+        if labels[j] == winner:
+            total += conf[j]
+    return np.uint8(winner), np.float32(total / top)
