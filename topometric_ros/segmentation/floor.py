@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import classes as C
 from ..grid import ScanGrid
+from .knn import keep_nearest
 
 #: Fewest floor-labelled points the plane is fitted to (fewer: labels unchanged).
 MIN_FLOOR_POINTS = 50
@@ -141,7 +142,7 @@ def _relabel(points, row, col, height, width, labels, conf, normal, offset, band
                         lowest = min(lowest, points[j, 0] * normal[0] + points[j, 1] * normal[1]
                                      + points[j, 2] * normal[2])
                     else:
-                        found = _keep_nearest(best_d, best_j, found, d, j)
+                        found = keep_nearest(best_d, best_j, found, d, j)
         if found and h_i - lowest > band:
             out_labels[i], out_conf[i] = _vote(labels, conf, best_j[:found], classes)
 
@@ -187,26 +188,6 @@ def _cell_members(row, col, height, width, lifted, rows, columns):
             members[fill[cell]] = i
             fill[cell] += 1
     return start, members
-
-
-@numba.njit(cache=True, nogil=True)
-def _keep_nearest(best_d, best_j, found, d, j):
-    """Insert point j at squared distance d into the ascending best_d / best_j (capacity len(best_d)); returns how
-    many they hold."""
-    if found < len(best_d):
-        k = found
-        found += 1
-    elif d < best_d[-1]:
-        k = len(best_d) - 1
-    else:
-        return found
-    while k > 0 and best_d[k - 1] > d:
-        best_d[k] = best_d[k - 1]
-        best_j[k] = best_j[k - 1]
-        k -= 1
-    best_d[k] = d
-    best_j[k] = j
-    return found
 
 
 @numba.njit(cache=True, nogil=True)

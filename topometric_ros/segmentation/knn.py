@@ -78,16 +78,8 @@ def _vote(points, row, col, height, width, labels, conf, k, rows, columns, dista
             dy = points[j, 1] - points[i, 1]
             dz = points[j, 2] - points[i, 2]
             d = dx * dx + dy * dy + dz * dz
-            if d >= distance2 or (found == k and d >= best_d[k - 1]):
-                continue
-            s = min(found, k - 1)  # insert in ascending order, dropping the farthest when full
-            while s > 0 and best_d[s - 1] > d:
-                best_d[s] = best_d[s - 1]
-                best_j[s] = best_j[s - 1]
-                s -= 1
-            best_d[s] = d
-            best_j[s] = j
-            found = min(found + 1, k)
+            if d < distance2:
+                found = keep_nearest(best_d, best_j, found, d, j)
         votes[:] = 0.0
         votes[labels[i]] = 0.5  # ties: the network's own label
         for t in range(found):
@@ -124,3 +116,20 @@ def _classes_across(occupant, labels, height, width, columns):
                 m |= bits[base + cc]
             across[base + c] = m
     return across
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def keep_nearest(best_d, best_j, found, d, j):
+    """Insert point j at squared distance d into the ascending best_d / best_j (capacity len(best_d)), dropping
+    the farthest when full; returns how many they hold."""
+    k = len(best_d)
+    if found == k and d >= best_d[k - 1]:
+        return found
+    s = min(found, k - 1)
+    while s > 0 and best_d[s - 1] > d:
+        best_d[s] = best_d[s - 1]
+        best_j[s] = best_j[s - 1]
+        s -= 1
+    best_d[s] = d
+    best_j[s] = j
+    return min(found + 1, k)
