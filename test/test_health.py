@@ -236,9 +236,10 @@ def _moving(rot=0.0, trans=0.0, speed=0.0, turn=0.0, rot_se=float("nan"), trans_
 
 def test_relative_limits_grow_with_speed_and_turning_like_kitti():
     """Limits = floor + share of the motion: rotation 0.5 °/s + 0.05 °/m × speed + 0.01 × turn rate, translation
-    0.04 m/s + 1 % of speed; ERROR at twice that. With no learning the configured floors hold."""
+    0.04 m/s + 1 % of speed (+ trans_per_deg × turn rate); ERROR at twice that. With no learning the configured
+    floors hold."""
     c = HealthConfig(noise_windows=0, warn_persist=1, rate_persist=1, rot_per_m=0.05, rot_per_deg=0.01,
-                     trans_per_m=0.01)
+                     trans_per_m=0.01, trans_per_deg=0.0)
     h = Health(c)
     limits = h.rates.limits(_moving(speed=10.0, turn=50.0))
     assert limits["rot_rate"] == pytest.approx((0.5 + 0.5 + 0.5, 3.0))
@@ -249,6 +250,9 @@ def test_relative_limits_grow_with_speed_and_turning_like_kitti():
     r = _moving(rot=2.0, speed=1.0)
     Health(c).assess(r)
     assert r.level == "ERROR" and r.message.startswith("rotation drift: 2 °/s (limit 1.1 at 1 m/s")
+    turning = replace(c, trans_per_deg=0.002)  # translation per degree turned: 0.04 + 0.1 + 0.002 x 50
+    assert Health(turning).rates.limits(_moving(speed=10.0, turn=50.0))["trans_rate"] == pytest.approx((0.24, 0.48))
+    assert Health(turning).rates.limits(_moving(speed=10.0))["trans_rate"] == pytest.approx((0.14, 0.28))
 
 
 def test_the_noise_floor_is_learned_per_run_within_bounds():

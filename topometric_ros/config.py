@@ -130,6 +130,7 @@ class HealthConfig:
     rot_per_deg: float = 0.01  # deg per deg turned, added to the rotation limit (relative limits)
     trans_floor: float = 0.04  # m/s, translation drift allowed standing still (relative limits; raised per run by the learned noise floor)
     trans_per_m: float = 0.0125  # m per m travelled (a fraction of the distance), added to the translation limit (relative limits)
+    trans_per_deg: float = 0.0005  # m per deg turned, added to the translation limit (relative limits; chosen by `topometric alarms --calibrate-rates --grid trans_per_deg=...` on the calibration split)
     error_factor: float = 2.0  # ERROR at this multiple of a rate's WARN limit (relative limits)
     rate_persist: int = 2  # a drift rate between its WARN and ERROR limits alarms once it was above WARN in this many of the last persist_windows windows (1 = at once; relative limits only); at ERROR at once
     rate_sigma: float = 1.75  # a drift rate is judged by its lower bound rate − rate_sigma × its standard error (metrics/drift_rate.py: each scan's planes one sample), so that one scan's pose noise does not read as drift (0 = the rate itself)
@@ -194,7 +195,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "health.rot_rate_warn": (0.0, 360.0), "health.rot_rate_error": (0.0, 360.0),
     "health.trans_rate_warn": (0.0, 100.0), "health.trans_rate_error": (0.0, 100.0),
     "health.rot_floor": (0.0, 360.0), "health.rot_per_m": (0.0, 100.0), "health.rot_per_deg": (0.0, 10.0),
-    "health.trans_floor": (0.0, 100.0), "health.trans_per_m": (0.0, 10.0), "health.error_factor": (1.0, 100.0),
+    "health.trans_floor": (0.0, 100.0), "health.trans_per_m": (0.0, 10.0), "health.trans_per_deg": (0.0, 1.0), "health.error_factor": (1.0, 100.0),
     "health.rate_persist": (1, 1000), "health.rate_sigma": (0.0, 10.0), "health.noise_warn": (0.0, 1000.0),
     "health.noise_windows": (0, 100_000), "health.noise_quantile": (0.0, 1.0), "health.noise_margin": (0.0, 100.0),
     "health.noise_max_factor": (1.0, 1000.0), "health.min_planes": (0, 1_000_000),

@@ -263,7 +263,7 @@ class RateLimits:
 
     ``relative`` (default): drift is judged against the motion, as the KITTI odometry benchmark does — the
     rotation limit is rot_floor + rot_per_m × speed + rot_per_deg × turn rate (deg/s), the translation limit
-    trans_floor + trans_per_m × speed (m/s), speed and turn rate from the window's SLAM poses; ERROR at
+    trans_floor + trans_per_m × speed + trans_per_deg × turn rate (m/s), speed and turn rate from the window's SLAM poses; ERROR at
     error_factor × WARN. The floors (what standing still is allowed) are learned per run from its first
     ``noise_windows`` windows: noise_margin × the noise_quantile of the rates above their motion share,
     between the configured floor and noise_max_factor × it; while learning, the floors are at that maximum.
@@ -301,7 +301,8 @@ class RateLimits:
     def _motion_share(self, result: Any) -> dict[str, float]:
         speed, turn = float(getattr(result, "speed", np.nan)), float(getattr(result, "turn_rate", np.nan))
         speed, turn = (speed if np.isfinite(speed) else 0.0), (turn if np.isfinite(turn) else 0.0)
-        return {"rot_rate": self.c.rot_per_m * speed + self.c.rot_per_deg * turn, "trans_rate": self.c.trans_per_m * speed}
+        return {"rot_rate": self.c.rot_per_m * speed + self.c.rot_per_deg * turn,
+                "trans_rate": self.c.trans_per_m * speed + self.c.trans_per_deg * turn}
 
     def limits(self, result: Any) -> dict[str, tuple[float, float]]:
         """rate -> (WARN limit, ERROR limit) in the rate's units (0 = off)."""
