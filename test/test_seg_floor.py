@@ -64,12 +64,41 @@ def test_a_foot_lower_than_the_band_or_beyond_reach_stays_floor():
     assert np.array_equal(F.lift_off_floor(points, grid, labels, conf, BAND)[0], labels)
 
 
-@pytest.mark.parametrize("pitch_deg", [15.0, -30.0])
-def test_a_tilted_sensor_gets_the_same_labels(pitch_deg):
+@pytest.mark.parametrize("rotvec", [(0.1, np.radians(15.0), 0.3), (0.1, np.radians(-30.0), 0.3), (np.pi, 0.0, 0.0)])
+def test_a_tilted_or_upside_down_sensor_gets_the_same_labels(rotvec):
     points, grid, labels, conf, foot = _room()
-    turned = (points.astype(np.float64) @ rotvec_to_matrix(np.array([0.1, np.radians(pitch_deg), 0.3])).T).astype(np.float32)
-    assert np.array_equal(F.lift_off_floor(turned, grid, labels, conf, BAND)[0],
-                          F.lift_off_floor(points, grid, labels, conf, BAND)[0])
+    turned = (points.astype(np.float64) @ rotvec_to_matrix(np.array(rotvec)).T).astype(np.float32)
+    out = F.lift_off_floor(turned, grid, labels, conf, BAND)[0]
+    assert np.array_equal(out, F.lift_off_floor(points, grid, labels, conf, BAND)[0])
+    assert np.all(out[foot] == C.CHAIR)
+    points[foot, 2] = -1.0 - 0.06  # a dip, not a foot: stays floor either way up
+    turned = (points.astype(np.float64) @ rotvec_to_matrix(np.array(rotvec)).T).astype(np.float32)
+    assert np.array_equal(F.lift_off_floor(turned, grid, labels, conf, BAND)[0], labels)
+
+
+def test_points_without_coordinates_are_ignored():
+    points, grid, labels, conf, foot = _room()
+    points[[0, 7, 100]] = np.nan  # floor points with no return
+    out, _ = F.lift_off_floor(points, grid, labels, conf, BAND)
+    assert np.all(out[foot] == C.CHAIR) and np.array_equal(np.delete(out, foot), np.delete(labels, foot))
+
+
+def test_the_window_wraps_around_in_azimuth_once_on_a_narrow_grid():
+    """A ring of 8 columns (a 15-column window would wrap it twice): a foot 6 cm up in column 0, across the seam
+    two chair points in column 7 (0.45 and 0.50 m from it) and three wall points in column 6 (0.60-0.70 m), a
+    floor point beside it in column 1 and 60 floor points in columns 3-4. Each neighbour votes once: wall 3,
+    chair 2. (Counted twice, the five nearest slots would be both chair points twice and a wall: chair.)"""
+    foot = [3.0, 0.0, -0.94]
+    chairs = [[3.0, -0.45, -0.9], [3.0, -0.5, -0.9]]
+    walls = [[3.0, -0.6, -0.9], [3.0, -0.65, -0.9], [3.0, -0.7, -0.9]]
+    floor = [[3.0, 0.5, -1.0]] + [[3.0 + 0.1 * k, 2.0 + k % 3, -1.0] for k in range(60)]
+    points = np.array([foot, *chairs, *walls, *floor], np.float32)
+    col = np.array([0, 7, 7, 6, 6, 6, 1] + [3 + k % 2 for k in range(60)], np.int32)
+    labels = np.array([C.FLOOR] + [C.CHAIR] * 2 + [C.WALL] * 3 + [C.FLOOR] * 61, np.uint8)
+    grid = ScanGrid(np.zeros(len(points), np.int32), col, 1, 8, np.zeros(1), "test")
+    out, _ = F.lift_off_floor(points, grid, labels, np.ones(len(points), np.float32), BAND)
+    assert out[0] == C.WALL
+    assert np.array_equal(out[1:], labels[1:])
 
 
 def test_a_floor_tilted_beyond_45_degrees_from_the_sensor_or_too_few_floor_points_change_nothing():

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import classes as C
 from ..grid import ScanGrid
-from .knn import keep_nearest
+from .knn import keep_nearest  # inlined into _relabel: after editing it, clear numba's cache (__pycache__/*.nbi)
 
 #: Fewest floor-labelled points the plane is fitted to (fewer: labels unchanged).
 MIN_FLOOR_POINTS = 50
@@ -38,24 +38,28 @@ WINDOW = (7, 15)
 
 
 def floor_plane(points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """(unit normal (3,) pointing up, offset m) of the plane through the floor-labelled points (sensor frame;
-    height above it = points @ normal − offset), or None with fewer than MIN_FLOOR_POINTS of them or a plane
-    tilted more than 45 deg from the sensor's x-y plane. Four rounds of least squares, each on the points
-    within FIT_TOLERANCE of the last plane or its closest 80 %."""
+    """(unit normal (3,) pointing from the floor towards the sensor, offset m) of the plane through the finite
+    floor-labelled points (sensor frame; height above the floor = points @ normal − offset; the sensor sees the
+    floor from above, so an upside-down sensor is judged as an upright one), or None with fewer than
+    MIN_FLOOR_POINTS of them or a plane tilted more than 45 deg from the sensor's x-y plane. Four rounds of least
+    squares, each on the points within FIT_TOLERANCE of the last plane or its closest 80 %."""
+    points = np.asarray(points)
     floor = np.flatnonzero(labels == C.FLOOR)
+    floor = floor[np.isfinite(points[floor]).all(1)]
     if len(floor) < MIN_FLOOR_POINTS:
         return None
-    normal, centre = _fit(np.asarray(points)[floor[::-(-len(floor) // FIT_POINTS)]].astype(np.float64),
-                          FIT_TOLERANCE)
-    if not normal[2] >= MIN_UPRIGHT:  # NaN too (a degenerate fit)
+    normal, centre = _fit(points[floor[::-(-len(floor) // FIT_POINTS)]].astype(np.float64), FIT_TOLERANCE)
+    if normal @ centre > 0:  # the sensor (the origin) lies on the normal's side
+        normal = -normal
+    if not abs(normal[2]) >= MIN_UPRIGHT:  # NaN too (a degenerate fit)
         return None
     return normal, float(normal @ centre)
 
 
 @numba.njit(cache=True, nogil=True)
 def _fit(p, tolerance):
-    """(unit normal pointing up, centroid) of the points (n, 3): four rounds of least squares, each on the points
-    within ``tolerance`` of the last plane or its closest 80 %."""
+    """(unit normal, centroid) of the points (n, 3): four rounds of least squares, each on the points within
+    ``tolerance`` of the last plane or its closest 80 %."""
     n = len(p)
     keep = np.ones(n, np.bool_)
     normal = np.full(3, np.nan)
@@ -78,8 +82,6 @@ def _fit(p, tolerance):
                     for b in range(3):
                         cov[a, b] += (p[i, a] - centre[a]) * (p[i, b] - centre[b])
         normal = np.linalg.eigh(cov)[1][:, 0]  # the direction of least spread
-        if normal[2] < 0:
-            normal = -normal
         for i in range(n):
             dist[i] = abs((p[i, 0] - centre[0]) * normal[0] + (p[i, 1] - centre[1]) * normal[1]
                           + (p[i, 2] - centre[2]) * normal[2])
@@ -103,8 +105,9 @@ def lift_off_floor(points: np.ndarray, grid: ScanGrid, labels: np.ndarray, confi
     if plane is None:
         return labels, confidence
     out_labels, out_conf = labels.copy(), confidence.copy()
+    rows, columns = int(window[0]), min(int(window[1]), grid.width)  # a narrow grid's columns count once
     _relabel(np.ascontiguousarray(points, np.float32), np.asarray(grid.row), np.asarray(grid.col), grid.height,
-             grid.width, labels, confidence, plane[0], plane[1], float(band), REACH, int(window[0]), int(window[1]),
+             grid.width, labels, confidence, plane[0], plane[1], float(band), REACH, rows, columns,
              float(distance) ** 2, VOTERS, C.FLOOR, C.NUM_CLASSES, out_labels, out_conf)
     return out_labels, out_conf
 
@@ -124,7 +127,7 @@ def _relabel(points, row, col, height, width, labels, conf, normal, offset, band
     votes = np.zeros(classes)
     for i in lifted:
         found = 0
-        h_i = points[i, 0] * normal[0] + points[i, 1] * normal[1] + points[i, 2] * normal[2]
+        h_i = _along(points, i, normal)
         lowest = h_i  # of the floor-labelled points near it (height above the plane + offset)
         for dr in range(-(rows // 2), rows - rows // 2):
             r = row[i] + dr
@@ -136,15 +139,14 @@ def _relabel(points, row, col, height, width, labels, conf, normal, offset, band
                     j = members[m]
                     d = (points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2 \
                         + (points[i, 2] - points[j, 2]) ** 2
-                    if d > distance2:
+                    if not d <= distance2:  # NaN too
                         continue
                     if labels[j] == floor:
-                        lowest = min(lowest, points[j, 0] * normal[0] + points[j, 1] * normal[1]
-                                     + points[j, 2] * normal[2])
+                        lowest = min(lowest, _along(points, j, normal))
                     else:
                         found = keep_nearest(best_d, best_j, found, d, j)
         if found and h_i - lowest > band:
-            out_labels[i], out_conf[i] = _vote(labels, conf, best_j[:found], classes)
+            out_labels[i], out_conf[i] = _vote(labels, conf, best_j[:found], votes)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -154,7 +156,7 @@ def _lifted(points, labels, normal, offset, band, reach, floor):
     n = 0
     for i in range(len(points)):
         if labels[i] == floor:
-            h = points[i, 0] * normal[0] + points[i, 1] * normal[1] + points[i, 2] * normal[2] - offset
+            h = _along(points, i, normal) - offset
             if band < h <= reach:
                 lifted[n] = i
                 n += 1
@@ -190,11 +192,17 @@ def _cell_members(row, col, height, width, lifted, rows, columns):
     return start, members
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _along(points, i, normal):
+    """Point i's coordinate along ``normal`` (m)."""
+    return points[i, 0] * normal[0] + points[i, 1] * normal[1] + points[i, 2] * normal[2]
+
+
 @numba.njit(cache=True, nogil=True)
-def _vote(labels, conf, voters, classes):
+def _vote(labels, conf, voters, votes):
     """(label, confidence) of the majority of ``voters`` (nearest first; a tie goes to the class of the nearest
-    voter among the tied) and the mean confidence of the voters for it."""
-    votes = np.zeros(classes)
+    voter among the tied) and the mean confidence of the voters for it; ``votes`` (classes,) is scratch."""
+    votes[:] = 0.0
     for j in voters:
         votes[labels[j]] += 1.0
     top = votes.max()

@@ -179,7 +179,8 @@ class Segmenter:
     rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
     then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
     ``floor_band`` (> 0, m): last, floor-labelled points standing more than that above the floor take their
-    non-floor neighbours' label (floor.lift_off_floor).
+    non-floor neighbours' label (floor.lift_off_floor). The constructor's defaults leave the vote and the check off;
+    :meth:`from_config` takes the config's (both on).
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,

@@ -121,7 +121,8 @@ def _classes_across(occupant, labels, height, width, columns):
 @numba.njit(cache=True, nogil=True, inline="always")
 def keep_nearest(best_d, best_j, found, d, j):
     """Insert point j at squared distance d into the ascending best_d / best_j (capacity len(best_d)), dropping
-    the farthest when full; returns how many they hold."""
+    the farthest when full; returns how many they hold. Inlined into floor._relabel too: numba's cache does not
+    see a change here from there, so clear __pycache__/*.nbi after editing it."""
     k = len(best_d)
     if found == k and d >= best_d[k - 1]:
         return found
