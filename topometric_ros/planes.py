@@ -102,7 +102,7 @@ def _fit_kernel(points, octagon):
     ascending and eigenvectors (3, 3) as columns, the extent (3, 3) of Plane: the min_area_rectangle of the
     points in the plane of the two largest principal axes)."""
     xyz = points.astype(np.float64)
-    mean, scatter = _mean_scatter(xyz)
+    mean, scatter = mean_scatter(xyz)
     lam, vecs = np.linalg.eigh(scatter)
     basis = np.empty((3, 2))  # in-plane principal axes, the longest first
     basis[:, 0], basis[:, 1] = vecs[:, 2], vecs[:, 1]
@@ -116,7 +116,7 @@ def _fit_kernel(points, octagon):
 
 
 @numba.njit(cache=True, nogil=True)
-def _mean_scatter(points):
+def mean_scatter(points):
     """(mean (3,), Σ (x − mean)(x − mean)ᵀ (3, 3)) of (K, 3) points, in float64, two passes."""
     mean = np.zeros(3)
     for i in range(len(points)):

@@ -17,7 +17,9 @@ import numpy as np
 
 from .. import classes as C
 from ..grid import ScanGrid
-from .knn import keep_nearest  # inlined into _relabel: after editing it, clear numba's cache (__pycache__/*.nbi)
+# compiled into _fit and _relabel: after editing either, clear numba's cache (__pycache__/*.nbi)
+from ..planes import mean_scatter
+from .knn import keep_nearest
 
 #: Fewest floor-labelled points the plane is fitted to (fewer: labels unchanged).
 MIN_FLOOR_POINTS = 50
@@ -66,22 +68,11 @@ def _fit(p, tolerance):
     centre = np.zeros(3)
     dist = np.empty(n)
     for _ in range(4):
-        count = 0
-        centre[:] = 0.0
-        for i in range(n):
-            if keep[i]:
-                count += 1
-                centre += p[i]
-        if count < 3:
+        kept = p[keep]
+        if len(kept) < 3:
             return np.full(3, np.nan), centre
-        centre /= count
-        cov = np.zeros((3, 3))
-        for i in range(n):
-            if keep[i]:
-                for a in range(3):
-                    for b in range(3):
-                        cov[a, b] += (p[i, a] - centre[a]) * (p[i, b] - centre[b])
-        normal = np.linalg.eigh(cov)[1][:, 0]  # the direction of least spread
+        centre, scatter = mean_scatter(kept)
+        normal = np.linalg.eigh(scatter)[1][:, 0]  # the direction of least spread
         for i in range(n):
             dist[i] = abs((p[i, 0] - centre[0]) * normal[0] + (p[i, 1] - centre[1]) * normal[1]
                           + (p[i, 2] - centre[2]) * normal[2])
