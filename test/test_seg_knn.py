@@ -8,12 +8,10 @@ import pytest
 
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig
-from topometric_ros.grid import ScanGrid, as_grid
+from topometric_ros.grid import ScanGrid
 from topometric_ros.segmentation.checkpoint import SegmentationError
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.knn import knn_vote
-from topometric_ros.segmentation.metrics import confusion, miou
-from topometric_ros.sim.frames import simulated_frames
 
 
 def _wall(rows: int = 5, cols: int = 40, x: float = 5.0, step: float = 0.05):
@@ -81,24 +79,6 @@ def test_k_zero_returns_the_input_and_a_uniform_scan_is_unchanged():
     labels[7] = C.WALL
     out, out_conf = knn_vote(points, grid, labels, conf, k=5, distance=0.5)
     assert np.array_equal(out, labels) and np.array_equal(out_conf, conf)
-
-
-def test_the_segmenter_votes_after_the_network_and_the_vote_does_not_lower_miou_on_simulated_scans():
-    plain = Segmenter.from_config(replace(SegmentationConfig(), knn=0, floor_band=0))
-    voting = Segmenter.from_config(replace(SegmentationConfig(), knn=3, floor_band=0))
-    frames, _ = simulated_frames("office2", 2, seed=4242)
-    before = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
-    after = before.copy()
-    for f in frames:
-        labels, conf = plain.predict(f.points, f.ring, f.intensity)
-        voted, voted_conf = voting.predict(f.points, f.ring, f.intensity)
-        want, want_conf = knn_vote(np.asarray(f.points, np.float32), as_grid(np.asarray(f.points, np.float32), f.ring),
-                                   labels, conf, 3, SegmentationConfig().knn_distance)
-        assert np.array_equal(voted, want) and np.array_equal(voted_conf, want_conf)
-        assert 0 < np.count_nonzero(voted != labels) < 0.01 * len(labels)
-        before += confusion(f.labels, labels)
-        after += confusion(f.labels, voted)
-    assert miou(after) >= miou(before)
 
 
 def test_a_negative_or_fractional_k_is_refused():

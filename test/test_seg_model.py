@@ -69,7 +69,7 @@ def test_folding_batchnorm_keeps_the_outputs(tmp_path):
 
 def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames):
     _, path = _random_weights(tmp_path)
-    seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path)))
+    seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path)))
     f = frames[0]
     labels, conf = seg.predict(f.points, f.ring, f.intensity)
     assert labels.shape == conf.shape == (len(f.points),)
@@ -87,8 +87,8 @@ def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames)
 def test_onnxruntime_backend_agrees_with_eager_pytorch(tmp_path, frames):
     pytest.importorskip("onnxruntime")
     _, path = _random_weights(tmp_path)
-    fast = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), backend="onnxruntime"))
-    eager = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), backend="eager"))
+    fast = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), backend="onnxruntime"))
+    eager = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), backend="eager"))
     assert (fast.backend, eager.backend) == ("onnxruntime", "eager")
     for f in frames:
         (la, ca), (lb, cb) = fast.predict(f.points, f.ring, f.intensity), eager.predict(f.points, f.ring, f.intensity)
@@ -108,7 +108,7 @@ def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames
     f = frames[0]
     mirrored = f.points * np.array([1.0, -1.0, 1.0], np.float32)
     for passes in (1, 2):
-        seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), passes=passes))
+        seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=passes))
         assert seg.backend == "onnxruntime"
         (a, ca), (b, cb) = seg.predict(f.points, f.ring, f.intensity), seg.predict(mirrored, f.ring, f.intensity)
         if passes == 1:
@@ -116,15 +116,15 @@ def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames
         else:
             np.testing.assert_array_equal(a, b)
             np.testing.assert_allclose(ca, cb, atol=1e-6)
-    fast = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), passes=3))
-    eager = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), passes=3, backend="eager"))
+    fast = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=3))
+    eager = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=3, backend="eager"))
     (la, ca), (lb, cb) = fast.predict(f.points, f.ring, f.intensity), eager.predict(f.points, f.ring, f.intensity)
     assert fast.backend == "onnxruntime" and (la == lb).mean() >= 0.999
     np.testing.assert_allclose(ca, cb, atol=1e-4)
     with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
-        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), passes=4))
+        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=4))
     with pytest.raises(SegmentationError, match="passes must be 1 to 3"):
-        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), passes=2.5))
+        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=2.5))
 
 
 def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_labels(tmp_path, frames):
@@ -134,8 +134,8 @@ def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_l
     _, path = _random_weights(tmp_path)
     f = frames[0]
     grid = scan_grid(f.points, f.ring)
-    every = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path)))
-    half = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), max_beams=16))
+    every = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path)))
+    half = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), max_beams=16))
     labels, conf = half.predict(f.points, grid, f.intensity)
     keep, sub = strided(grid, 2)
     seen, seen_conf = every.predict(f.points[keep], sub, f.intensity[keep])
@@ -145,19 +145,19 @@ def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_l
     np.testing.assert_array_equal(labels[source >= 0], seen[source[source >= 0]])
     np.testing.assert_array_equal(conf[source >= 0], seen_conf[source[source >= 0]])
     assert np.all(labels[source < 0] == C.OTHER)
-    same = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), max_beams=32))
+    same = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), max_beams=32))
     np.testing.assert_array_equal(same.predict(f.points, grid, f.intensity)[0],
                                   every.predict(f.points, grid, f.intensity)[0])
     with pytest.raises(ProjectionError, match="grid / ring must have"):  # a bad cloud says so, as without max_beams
         half.predict(f.points, f.ring[:-1], f.intensity)
     with pytest.raises(SegmentationError, match="max_beams must be a whole number"):
-        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), max_beams=-1))
+        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), max_beams=-1))
 
 
 def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames, monkeypatch, caplog):
     _, path = _random_weights(tmp_path)
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # the package is absent: import raises ImportError
-    seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path)))
+    seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path)))
     assert seg.backend == "eager" and "using eager PyTorch" in caplog.text
     labels, _ = seg.predict(frames[0].points, frames[0].ring, frames[0].intensity)
     assert labels.shape == (len(frames[0].points),)
@@ -166,7 +166,7 @@ def test_without_onnxruntime_the_segmenter_falls_back_to_eager(tmp_path, frames,
 def test_unknown_backend_is_a_clear_error(tmp_path):
     _, path = _random_weights(tmp_path)
     with pytest.raises(SegmentationError, match="unknown segmentation backend"):
-        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), backend="tensorrt"))
+        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), backend="tensorrt"))
     with pytest.raises(ValueError, match="segmentation.backend"):
         load_config(overrides={"segmentation.backend": "tensorrt"})
     assert load_config(overrides={"segmentation.backend": "eager"}).segmentation.backend == "eager"
@@ -248,7 +248,7 @@ def test_modified_weights_fail_the_checksums(tmp_path):
 def test_bad_device_is_a_clear_error(tmp_path):
     _, path = _random_weights(tmp_path)
     with pytest.raises(SegmentationError, match="device"):
-        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, weights=str(path), device="tpu"))
+        Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), device="tpu"))
 
 
 def test_augment_keeps_labels_and_builds_consistent_channels():
@@ -372,11 +372,11 @@ def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
     assert conf is None
     assert segment_frame(f, SegmentationConfig(mode="none")) == (None, None)
     _, path = _random_weights(tmp_path)
-    cfg = SegmentationConfig(knn=0, floor_band=0, weights=str(path))
+    cfg = SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path))
     seg = Segmenter.from_config(cfg)
     labels, conf = segment_frame(f, cfg, seg)
     np.testing.assert_array_equal(labels, seg.predict(f.points, f.ring, f.intensity)[0])
-    strict, _ = segment_frame(f, SegmentationConfig(knn=0, floor_band=0, weights=str(path), min_confidence=float(np.median(conf))),
+    strict, _ = segment_frame(f, SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), min_confidence=float(np.median(conf))),
                               seg)
     assert (strict == C.OTHER).sum() > (labels == C.OTHER).sum()
     with pytest.raises(SegmentationError, match="no label field"):

@@ -416,7 +416,8 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
         segmenter = Segmenter.from_config(SegmentationConfig(weights=args.weights, device=args.device,
                                                              threads=args.threads, passes=args.passes,
                                                              max_beams=args.max_beams, knn=args.knn,
-                                                             precision=args.precision, floor_band=args.floor_band))
+                                                             precision=args.precision, floor_band=args.floor_band,
+                                                             object_gap=args.object_gap))
     result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
     metrics = write_report(result, args.out, args.title)
     print(format_table(metrics["rows"]))
@@ -427,6 +428,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
               f"{'every beam' if not args.max_beams else f'at most {args.max_beams} beams'}, "
               f"{f'{args.knn}-nearest-neighbour vote' if args.knn else 'no neighbour vote'}, "
               f"{f'floor band {args.floor_band} m' if args.floor_band else 'no floor check'}, "
+              f"{f'objects within {args.object_gap} m' if args.object_gap else 'no object labels'}, "
               f"{segmenter.precision if segmenter else 'no'} network, projection + network + back-projection)")
     print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
     return 0
@@ -533,6 +535,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--floor-band", type=float, default=SegmentationConfig().floor_band,
                    help="m, floor labels standing this far above the floor go to their neighbours' label "
                         "(segmentation.floor_band; 0 = off)")
+    e.add_argument("--object-gap", type=float, default=SegmentationConfig().object_gap,
+                   help="m, desk and chair points this close in neighbouring cells form one object, which takes its "
+                        "commonest label (segmentation.object_gap; 0 = off)")
     e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
                    help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
     e.add_argument("--every", type=_positive, default=1, help="use every n-th scan")

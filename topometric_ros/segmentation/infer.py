@@ -27,6 +27,7 @@ from .projection import CHANNELS, Projection, beam_stride, checked, nearest_stri
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
 from .floor import lift_off_floor
 from .knn import knn_vote
+from .objects import unify_objects
 from .quantize import cpu_has_vnni, load_ranges, quantize
 
 BACKENDS = ("onnxruntime", "eager")
@@ -179,13 +180,15 @@ class Segmenter:
     rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
     then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
     ``floor_band`` (> 0, m): last, floor-labelled points standing more than that above the floor take their
-    non-floor neighbours' label (floor.lift_off_floor). The constructor's defaults leave the vote and the check off;
-    :meth:`from_config` takes the config's (both on).
+    non-floor neighbours' label (floor.lift_off_floor). ``object_gap`` (> 0, m): then desk and chair points
+    joined within that gap take their object's majority label (objects.unify_objects). The constructor's
+    defaults leave the vote, the check and the objects off; :meth:`from_config` takes the config's (all on).
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
-                 knn_distance: float = 0.5, int8_ranges: dict | None = None, floor_band: float = 0.0):
+                 knn_distance: float = 0.5, int8_ranges: dict | None = None, floor_band: float = 0.0,
+                 object_gap: float = 0.0):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
@@ -195,8 +198,10 @@ class Segmenter:
             raise SegmentationError(f"segmentation.knn must be a whole number >= 0, got {knn}")
         if not floor_band >= 0:
             raise SegmentationError(f"segmentation.floor_band must be >= 0 m, got {floor_band}")
+        if not object_gap >= 0:
+            raise SegmentationError(f"segmentation.object_gap must be >= 0 m, got {object_gap}")
         self.threads = threads
-        self.floor_band = float(floor_band)
+        self.floor_band, self.object_gap = float(floor_band), float(object_gap)
         self.max_beams = int(max_beams)
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
@@ -217,7 +222,8 @@ class Segmenter:
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
-                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state), cfg.floor_band)
+                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state), cfg.floor_band,
+                   cfg.object_gap)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -247,6 +253,8 @@ class Segmenter:
                     out[i] = knn_vote(*scans[i][:2], *out[i], self.knn, self.knn_distance)
                 if self.floor_band:
                     out[i] = lift_off_floor(*scans[i][:2], *out[i], self.floor_band)
+                if self.object_gap:
+                    out[i] = unify_objects(*scans[i][:2], *out[i], self.object_gap)
                 start = stop
         return out
 
