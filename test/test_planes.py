@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from topometric_ros import classes as C
 from topometric_ros.config import Config, PlaneConfig
 from topometric_ros.experiments.plane_quality import plane_quality
+from topometric_ros.grid import ScanGrid
 from topometric_ros.planes import detect_planes, fit_plane
 from topometric_ros.sim.frames import simulated_frames
 from topometric_ros.sim.lidar import Lidar, firings
@@ -383,3 +384,39 @@ def test_a_point_goes_to_its_own_tiles_plane_else_the_nearest_neighbouring_one()
     p = np.column_stack([np.zeros_like(z), np.zeros_like(z), z]).astype(np.float32)
     got = _nearest_candidate(p, np.zeros(len(p), np.int64), tr, tc, plane_grid, normal, offset, 0.05)
     assert got.tolist() == expected.tolist()
+
+
+def _box_room(elevations_deg, columns=1800, noise=0.003):
+    """A spinning sensor's rows at these elevations (deg) in a 6 × 8 m box room (walls at x = ±3, y = ±4 m),
+    sensor at its centre: points (sensor frame) and their grid (row r = the r-th elevation)."""
+    az = 2 * np.pi * np.arange(columns) / columns
+    pts, rows = [], []
+    for r, e in enumerate(np.radians(elevations_deg)):
+        d = np.stack([np.cos(az) * np.cos(e), np.sin(az) * np.cos(e), np.full(columns, np.sin(e))], 1)
+        t = np.full(columns, np.inf)
+        for nx, ny, dist in ((1, 0, 3.0), (-1, 0, 3.0), (0, 1, 4.0), (0, -1, 4.0)):
+            toward = d[:, 0] * nx + d[:, 1] * ny
+            t[toward > 1e-9] = np.minimum(t[toward > 1e-9], dist / toward[toward > 1e-9])
+        pts.append(d * t[:, None])
+        rows.append(np.full(columns, r))
+    pts = np.concatenate(pts) + np.random.default_rng(0).normal(0, noise, (len(elevations_deg) * columns, 3))
+    row = np.concatenate(rows).astype(np.int32)
+    col = np.tile(np.arange(columns), len(elevations_deg)).astype(np.int32)
+    return pts.astype(np.float32), ScanGrid(row, col, len(elevations_deg), columns, np.asarray(elevations_deg, float),
+                                            "test")
+
+
+def test_with_min_rows_2_one_scan_line_is_no_plane():
+    """A beam near 0° elevation sweeps a nearly flat cone: its points across the room's corners lie in a
+    horizontal "plane" whatever walls they hit. planes.min_rows 2 drops such a group; the default keeps it."""
+    vlp16 = np.arange(-15.0, 16.0, 2.0)
+    pts, grid = _box_room(vlp16)
+    cfg = PlaneConfig(min_rows=2)
+    walls = detect_planes(pts, np.full(len(pts), C.WALL, np.uint8), grid, cfg)
+    assert len(walls) == 4 and all(abs(p.normal[2]) < 0.01 for p in walls)  # every row: the four walls
+    labels = np.where(grid.row == 7, C.WALL, C.OTHER).astype(np.uint8)  # the −1° row alone is labelled wall
+    assert detect_planes(pts, labels, grid, cfg) == []
+    assert len(detect_planes(pts, labels, grid)) == 2  # the default keeps one-row planes (results.md, 17th session)
+    flat, flat_grid = _box_room([0.0])  # a row at 0°: its points are exactly coplanar
+    assert detect_planes(flat, np.full(len(flat), C.WALL, np.uint8), flat_grid, cfg) == []
+    assert detect_planes(flat, np.full(len(flat), C.WALL, np.uint8), flat_grid, replace(cfg, detector="open3d")) == []
