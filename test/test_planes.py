@@ -406,17 +406,31 @@ def _box_room(elevations_deg, columns=1800, noise=0.003):
                                             "test")
 
 
-def test_with_min_rows_2_one_scan_line_is_no_plane():
+def test_one_scan_line_across_walls_makes_no_wall():
     """A beam near 0° elevation sweeps a nearly flat cone: its points across the room's corners lie in a
-    horizontal "plane" whatever walls they hit. planes.min_rows 2 drops such a group; the default keeps it."""
+    horizontal "plane" whatever walls they hit. It faces up, so it is no wall (planes.UPRIGHT)."""
     vlp16 = np.arange(-15.0, 16.0, 2.0)
     pts, grid = _box_room(vlp16)
-    cfg = PlaneConfig(min_rows=2)
-    walls = detect_planes(pts, np.full(len(pts), C.WALL, np.uint8), grid, cfg)
+    walls = detect_planes(pts, np.full(len(pts), C.WALL, np.uint8), grid)
     assert len(walls) == 4 and all(abs(p.normal[2]) < 0.01 for p in walls)  # every row: the four walls
     labels = np.where(grid.row == 7, C.WALL, C.OTHER).astype(np.uint8)  # the −1° row alone is labelled wall
-    assert detect_planes(pts, labels, grid, cfg) == []
-    assert len(detect_planes(pts, labels, grid)) == 2  # the default keeps one-row planes (results.md, 17th session)
+    assert detect_planes(pts, labels, grid) == []  # before the rule: two horizontal "walls" of 54 and 60 points
     flat, flat_grid = _box_room([0.0])  # a row at 0°: its points are exactly coplanar
-    assert detect_planes(flat, np.full(len(flat), C.WALL, np.uint8), flat_grid, cfg) == []
-    assert detect_planes(flat, np.full(len(flat), C.WALL, np.uint8), flat_grid, replace(cfg, detector="open3d")) == []
+    for detector in ("ring", "open3d"):
+        assert detect_planes(flat, np.full(len(flat), C.WALL, np.uint8), flat_grid, PlaneConfig(detector=detector)) == []
+
+
+def test_a_wall_or_pillar_facing_up_or_down_is_dropped():
+    """Walls and pillars do not face up or down (within 45° of the sensor's z axis): a "wall" facing up is one scan
+    line's flat cone or a mislabelled desk top, not a wall. Floors and ceilings are kept whichever way they face
+    (real scans have facades the network calls ceiling)."""
+    level, _, ring = _plane_scan([0.0, 0.0, 1.0], 1.2, max_range=15.0)  # a floor 1.2 m below the sensor
+    upright, _, ring_up = _plane_scan([-1.0, 0.2, 0.0], 3.0, max_range=15.0)  # a wall 3 m away
+    for pts, rings, cls, kept in ((level, ring, C.FLOOR, 1), (level, ring, C.CEILING, 1), (level, ring, C.WALL, 0),
+                                  (level, ring, C.PILLAR, 0), (upright, ring_up, C.WALL, 1),
+                                  (upright, ring_up, C.PILLAR, 1), (upright, ring_up, C.CEILING, 1)):
+        planes = detect_planes(pts, np.full(len(pts), cls, np.uint8), rings)
+        assert len(planes) == kept and all(p.cls == cls for p in planes)
+    steep = Rotation.from_euler("y", 40, degrees=True).apply([-1.0, 0.0, 0.0])  # normal 40° above level: still a wall
+    leaning, _, ring_l = _plane_scan(steep, 3.0, max_range=15.0)
+    assert [p.cls for p in detect_planes(leaning, np.full(len(leaning), C.WALL, np.uint8), ring_l)] == [C.WALL]

@@ -65,7 +65,6 @@ class PlaneConfig:
     detector: str = "ring"  # ring (fast, uses the scan structure) | open3d (detect_planar_patches)
     min_points: int = 50  # smallest plane kept
     min_width: float = 0.02  # m, RMS spread of a plane's inliers across its long axis; narrower = a line, dropped
-    min_rows: int = 1  # planes on fewer grid rows are dropped; 2: one scan line is no plane (a beam near 0 deg elevation sweeps a flat cone: across corners its points fit a horizontal "plane"); off by default: it cost one calibration detection and 0.013 of the VLP-32C's plane recall (docs/results.md, seventeenth session)
     max_sample_points: int = 256  # inlier points kept per plane for display (stats use all inliers)
     inlier_distance: float = 0.05  # m, largest point-to-plane distance of an inlier
     normal_angle_deg: float = 10.0  # deg, largest angle between normals of parts of one plane
@@ -184,7 +183,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "segmentation.max_beams": (0, 256), "segmentation.knn": (0, 15), "segmentation.knn_distance": (0.0, 100.0),
     "segmentation.floor_band": (0.0, 0.2), "segmentation.object_gap": (0.0, 1.0),
     # planes
-    "planes.min_points": (3, 1_000_000), "planes.min_rows": (1, 1024), "planes.max_sample_points": (3, 1_000_000),
+    "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
     # metrics
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000), "metrics.rate_gate_per_m": (0.0, 1.0),
     # health

@@ -294,6 +294,10 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
 # --------------------------------------------------------------------------------------------------------
 
 _NCLS = C.NUM_CLASSES
+#: |normal · sensor z| of a plane facing up or down (45°): no wall or pillar plane does (the sensor is taken as
+#: mounted within 45° of level, as in segmentation/floor.py). Floors and ceilings are not held to it: on real
+#: scans the network calls some facades "ceiling", and those are still planes that scans share.
+UPRIGHT = float(np.cos(np.radians(45.0)))
 
 
 def detect_planes(points: np.ndarray, labels: np.ndarray, grid=None, config=None,
@@ -330,7 +334,7 @@ def detect_planes(points: np.ndarray, labels: np.ndarray, grid=None, config=None
         assign, normal, offset = _assign_open3d(pts, lab, cfg)
     groups = _groups(assign)
     groups = _split_at_openings(pts, groups, normal, offset, grid, cfg)
-    planes, assign = _refit(pts, lab, grid.row, groups, cfg, frame)
+    planes, assign = _refit(pts, lab, groups, cfg, frame)
     return (planes, assign) if return_inliers else planes
 
 
@@ -505,22 +509,22 @@ def _along_and_up(pts, members, along):
     return u, v
 
 
-def _refit(pts, lab, row, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
-    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points, on fewer
-    than min_rows grid rows (``row``: each point's) or narrower than min_width.
+def _refit(pts, lab, groups: list[np.ndarray], cfg, frame) -> tuple[list[Plane], np.ndarray]:
+    """Fit each group of point indices with fit_plane on all its inliers; drop groups below min_points, narrower
+    than min_width, or of walls and pillars facing up or down (UPRIGHT).
     Returns the planes and each point's plane index (−1 none)."""
     out = np.full(len(pts), -1, np.int32)
     planes = []
     for members in groups:
         if len(members) < max(cfg.min_points, 3):
             continue
-        if cfg.min_rows > 1 and len(np.unique(row[members])) < cfg.min_rows:
-            continue  # e.g. one scan line: a beam near 0° elevation sweeps a flat cone, so its points across a
-            # corner or several walls look like a horizontal plane whatever they hit
         cls = int(lab[members[0]])
         plane, lam = _fit_plane(pts.take(members, axis=0), cls, frame, cfg.max_sample_points)
         if lam[1] < len(members) * cfg.min_width ** 2:
             continue  # a line (e.g. where a spurious plane crosses a real one), not a plane
+        if cls in (C.WALL, C.PILLAR) and abs(plane.normal[2]) >= UPRIGHT:
+            continue  # a "wall" facing up or down. E.g. a beam near 0° elevation sweeps a nearly flat cone, so
+            # its points across a corner or several walls fit a horizontal plane whatever they hit
         planes.append(plane)
         out[members] = len(planes) - 1
     return planes, out
