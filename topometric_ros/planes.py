@@ -294,9 +294,10 @@ def planes_from_instances(points: np.ndarray, labels: np.ndarray, instance: np.n
 # --------------------------------------------------------------------------------------------------------
 
 _NCLS = C.NUM_CLASSES
-#: |normal · sensor z| of a plane facing up or down (45°): no wall or pillar plane does (the sensor is taken as
-#: mounted within 45° of level, as in segmentation/floor.py). Floors and ceilings are not held to it: on real
-#: scans the network calls some facades "ceiling", and those are still planes that scans share.
+#: |normal · sensor z| of a plane facing up or down (45°): no wall or pillar plane does, and the floor check's
+#: floor plane must (segmentation/floor.py): the sensor is taken as mounted within 45° of level. Floor and
+#: ceiling planes are not held to it: on real scans the network calls some facades "ceiling", and those are
+#: still planes that scans share.
 UPRIGHT = float(np.cos(np.radians(45.0)))
 
 

@@ -17,8 +17,9 @@ import numpy as np
 
 from .. import classes as C
 from ..grid import ScanGrid
-# compiled into _fit and _relabel: after editing either, clear numba's cache (__pycache__/*.nbi)
-from ..planes import mean_scatter
+# mean_scatter and keep_nearest are compiled into _fit and _relabel: after editing either, clear numba's cache
+# (__pycache__/*.nbi)
+from ..planes import UPRIGHT, mean_scatter
 from .knn import keep_nearest
 
 #: Fewest floor-labelled points the plane is fitted to (fewer: labels unchanged).
@@ -27,8 +28,6 @@ MIN_FLOOR_POINTS = 50
 FIT_POINTS = 1024
 #: m, points at most this far from the plane always count in the trimmed fit; beyond, the closest 80 %.
 FIT_TOLERANCE = 0.03
-#: Least cosine between the fitted floor normal and the sensor's z axis (45 deg): a steeper "floor" is no floor.
-MIN_UPRIGHT = np.cos(np.radians(45.0))
 #: m, floor-labelled points higher than this above the plane are left alone (another level, not a chair's foot).
 REACH = 0.3
 #: Non-floor points that vote on a lifted point's label.
@@ -53,7 +52,7 @@ def floor_plane(points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, flo
     normal, centre = _fit(points[floor[::-(-len(floor) // FIT_POINTS)]].astype(np.float64), FIT_TOLERANCE)
     if normal @ centre > 0:  # the sensor (the origin) lies on the normal's side
         normal = -normal
-    if not abs(normal[2]) >= MIN_UPRIGHT:  # NaN too (a degenerate fit)
+    if not abs(normal[2]) >= UPRIGHT:  # tilted more than 45°: no floor; NaN too (a degenerate fit)
         return None
     return normal, float(normal @ centre)
 

@@ -179,9 +179,9 @@ class Segmenter:
     segmented (projection.beam_stride), the rows between take the labels of their nearest neighbours in the
     rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
     then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
-    ``floor_band`` (> 0, m): last, floor-labelled points standing more than that above the floor take their
+    ``floor_band`` (> 0, m): then floor-labelled points standing more than that above the floor take their
     non-floor neighbours' label (floor.lift_off_floor). ``object_gap`` (> 0, m): then desk and chair points
-    joined within that gap take their object's majority label (objects.unify_objects). The constructor's
+    joined within that gap take their object's majority label (objects.unify_objects), last. The constructor's
     defaults leave the vote, the check and the objects off; :meth:`from_config` takes the config's (all on).
     """
 
