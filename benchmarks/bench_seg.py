@@ -60,7 +60,7 @@ def _cpu(results: dict, scans: list, repeats: int) -> None:
     import torch
 
     from topometric_ros.config import SegmentationConfig
-    from topometric_ros.segmentation.infer import Segmenter
+    from topometric_ros.segmentation.infer import Segmenter, read_out
     from topometric_ros.segmentation.projection import project
 
     segs = {b: Segmenter.from_config(SegmentationConfig(threads=1, backend=b)) for b in ("eager", "onnxruntime")}
@@ -84,14 +84,15 @@ def _cpu(results: dict, scans: list, repeats: int) -> None:
 
     x = torch.from_numpy(image[None])
     with torch.no_grad():
-        ref = eager.labeller(x)[0]
-        traced = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(eager.labeller.eval(), x)))
+        ref = read_out(eager.scorer(x).numpy())[0]
+        traced = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(eager.scorer.eval(), x)))
         results["cpu1_torchscript_network_ms"] = round(median_ms(lambda: traced(x), repeats)[0], 2)
-        results["torchscript_label_agreement_with_eager"] = float((traced(x)[0] == ref).float().mean())
-        cl = copy.deepcopy(eager.labeller).to(memory_format=torch.channels_last)
+        results["torchscript_label_agreement_with_eager"] = float((read_out(traced(x).numpy())[0] == ref).mean())
+        cl = copy.deepcopy(eager.scorer).to(memory_format=torch.channels_last)
         xc = x.contiguous(memory_format=torch.channels_last)
         results["cpu1_channels_last_network_ms"] = round(median_ms(lambda: cl(xc), repeats)[0], 2)
-        results["channels_last_label_agreement_with_eager"] = float((cl(xc)[0] == ref).float().mean())
+        results["channels_last_label_agreement_with_eager"] = float(
+            (read_out(cl(xc).contiguous().numpy())[0] == ref).mean())
 
     batch = scans[:8]
     for name, seg in segs.items():

@@ -52,7 +52,7 @@ def test_only_the_body_runs_int8_the_stem_and_head_stay_float():
     seg = Segmenter.from_config(SegmentationConfig(precision="float32"))
     _, state = load_weights(SHIPPED)
     ranges, _ = load_ranges(SHIPPED, state_digest(state))
-    model = onnx.load_from_string(quantize(export_onnx(seg.labeller, 32, 1024), ranges))
+    model = onnx.load_from_string(quantize(export_onnx(seg.scorer, 32, 1024), ranges))
     convs = [n for n in model.graph.node if n.op_type == "Conv"]
     made = {o: n.op_type for n in model.graph.node for o in n.output}
     float_convs = [n.name for n in convs if made.get(n.input[0]) != "DequantizeLinear"]

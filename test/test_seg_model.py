@@ -15,7 +15,7 @@ from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig, load_config
 from topometric_ros.grid import scan_grid
 from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
-from topometric_ros.segmentation.infer import Segmenter
+from topometric_ros.segmentation.infer import Segmenter, read_out
 from topometric_ros.segmentation.metrics import confusion
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
@@ -65,6 +65,20 @@ def test_folding_batchnorm_keeps_the_outputs(tmp_path):
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
     with torch.no_grad():
         torch.testing.assert_close(folded(x), model(x), atol=1e-4, rtol=1e-4)
+
+
+def test_read_out_gives_the_softmax_arg_max_and_its_probability_per_unfolded_column():
+    torch.manual_seed(1)
+    model = RangeNet(ModelSpec()).eval()
+    x = torch.randn(2, 6, 32, 64)
+    with torch.no_grad():
+        conf, labels = torch.softmax(model(x), 1).max(1)  # model(x): the azimuth already unfolded
+        got_labels, got_conf = read_out(model.folded_logits(x).numpy())
+    assert got_labels.dtype == np.uint8 and got_conf.dtype == np.float32
+    np.testing.assert_array_equal(got_labels, labels.numpy())
+    np.testing.assert_allclose(got_conf, conf.numpy(), rtol=1e-5)
+    tie = np.zeros((1, 3, 1, 1, 2), np.float32)  # three classes scored equally: the lowest wins, at 1/3
+    assert read_out(tie)[0].tolist() == [[[0, 0]]] and np.allclose(read_out(tie)[1], 1 / 3)
 
 
 def test_segmenter_predicts_one_label_and_confidence_per_point(tmp_path, frames):

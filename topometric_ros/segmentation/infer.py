@@ -2,10 +2,11 @@
 
 Weights come through checkpoint.py (safe load, key/shape/digest checks, SegmentationError with the reason).
 
-CPU backends: ``onnxruntime`` (default) exports the checked network (BatchNorm folded, softmax and arg-max
-included) to ONNX in memory at load time and runs it with ONNX Runtime; the export is verified against
-PyTorch on a fixed input and any failure (or a missing onnxruntime) falls back to ``eager`` PyTorch with a
-warning. The shipped weights stay one ``.pt`` file; no ONNX file is written or read.
+CPU backends: ``onnxruntime`` (default) exports the checked network (BatchNorm folded; class scores out) to
+ONNX in memory at load time and runs it with ONNX Runtime; the export is verified against PyTorch on a fixed
+input and any failure (or a missing onnxruntime) falls back to ``eager`` PyTorch with a warning. Both
+backends' scores are read out (arg-max, confidence) by one numpy/numba function, :func:`read_out`. The
+shipped weights stay one ``.pt`` file; no ONNX file is written or read.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Sequence
 
+import numba
 import numpy as np
 import torch
 
@@ -48,15 +50,17 @@ MAX_PASSES = 3
 Y_CHANNEL = CHANNELS.index("y")  # negated in the mirror image
 
 
-class Labeller(nn.Module):
-    """The network plus its read-out: (B, 6, H, W) range images -> (labels (B, H, W) uint8, confidence
-    (B, H, W) float32 softmax probability of the label). One module, so every backend computes the same.
+class Scorer(nn.Module):
+    """The network as the backends run it: (B, 6, H, W) range images -> class scores (B, classes, fold, H, W /
+    fold) float32, log-probabilities up to a per-pixel constant; column j * fold + i of the image is
+    [..., i, :, j]. :func:`read_out` turns them into labels and confidence, the same for every backend.
 
-    ``passes`` > 1 averages the softmax of several views of each image, each mapped back to the image's
-    pixels: 2 adds the mirror image (azimuth a -> -a, y -> -y; the labels are then mirror-invariant), 3 also
-    the image turned by half a fold (the network folds ``fold`` columns into one pixel, so the shifted view
-    groups them differently; no longer exactly mirror-invariant). The confidence is then the MEAN softmax's
-    top value, lower than one pass's: the same segmentation.min_confidence drops more points."""
+    ``passes`` 1: the network's folded logits. ``passes`` > 1 averages the softmax of several views of each
+    image, each mapped back to the image's pixels, and scores its log (fold 1): 2 adds the mirror image
+    (azimuth a -> -a, y -> -y; the labels are then mirror-invariant), 3 also the image turned by half a fold
+    (the network folds ``fold`` columns into one pixel, so the shifted view groups them differently; no longer
+    exactly mirror-invariant). The confidence is then the MEAN softmax's top value, lower than one pass's: the
+    same segmentation.min_confidence drops more points."""
 
     def __init__(self, net: RangeNet, passes: int = 1):
         super().__init__()
@@ -72,25 +76,42 @@ class Labeller(nn.Module):
         sign[:, Y_CHANNEL] = -1.0
         self.register_buffer("mirror_sign", sign, persistent=False)
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if self.passes > 1:
-            return self._averaged(x)
-        y = self.net.folded_logits(x)  # (b, k, f, h, w / f): reduce over classes before unfolding azimuth
-        top, labels = y.max(1)
-        conf = 1.0 / torch.exp(y - top.unsqueeze(1)).sum(1)  # = max softmax; cheaper than softmax in ONNX Runtime
-        b, f, h, wf = labels.shape
-        unfold = lambda t: t.permute(0, 2, 3, 1).reshape(b, h, wf * f)  # noqa: E731
-        return unfold(labels.to(torch.uint8)), unfold(conf)
-
-    def _averaged(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Labels and confidence of the mean softmax over ``passes`` views (see the class docstring)."""
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.passes == 1:
+            return self.net.folded_logits(x)
         prob = torch.softmax(self.net(x), 1)
         prob = prob + _mirror(torch.softmax(self.net(_mirror(x) * self.mirror_sign), 1))  # its own inverse
         if self.passes > 2:
             turned = torch.softmax(self.net(torch.roll(x, self.shift, -1)), 1)
             prob = prob + torch.roll(turned, -self.shift, -1)
-        conf, labels = (prob / self.passes).max(1)
-        return labels.to(torch.uint8), conf
+        return torch.log(prob / self.passes).unsqueeze(2)  # (b, k, 1, h, w)
+
+
+def read_out(scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (B, H, W) uint8, confidence (B, H, W) float32: the softmax probability of the label) of
+    Scorer scores (B, classes, fold, H, W / fold) float32, with the azimuth unfolded. Overwrites ``scores``."""
+    b, k, f, h, wf = scores.shape
+    flat = scores.reshape(b, k, f * h * wf)
+    top, labels = _top_class(flat)
+    np.subtract(flat, top[:, None], out=flat)
+    conf = np.reciprocal(np.exp(flat, out=flat).sum(1))  # max softmax = 1 / sum exp(score - top score)
+    unfold = lambda a: a.reshape(b, f, h, wf).transpose(0, 2, 3, 1).reshape(b, h, wf * f)  # noqa: E731
+    return unfold(labels), unfold(conf)
+
+
+@numba.njit(cache=True, nogil=True)
+def _top_class(scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(top score (B, N), its class (B, N) uint8) of scores (B, classes, N); ties go to the lower class."""
+    b, k, n = scores.shape
+    top = scores[:, 0].copy()
+    labels = np.zeros((b, n), np.uint8)
+    for i in range(b):
+        for c in range(1, k):
+            for j in range(n):
+                if scores[i, c, j] > top[i, j]:
+                    top[i, j] = scores[i, c, j]
+                    labels[i, j] = c
+    return top, labels
 
 
 def _spread(labels: np.ndarray, conf: np.ndarray, source: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -109,25 +130,25 @@ def _mirror(t: torch.Tensor) -> torch.Tensor:
     return torch.roll(torch.flip(t, (-1,)), 1, -1)
 
 
-def export_onnx(labeller: Labeller, height: int, width: int) -> bytes:
-    """The Labeller as ONNX bytes for (B, 6, height, width) images (batch size free)."""
+def export_onnx(scorer: Scorer, height: int, width: int) -> bytes:
+    """The Scorer as ONNX bytes for (B, 6, height, width) images (batch size free)."""
     buf = io.BytesIO()
     with warnings.catch_warnings():  # the TorchScript-based exporter warns that it is deprecated
         warnings.simplefilter("ignore")
-        torch.onnx.export(labeller, (_probe_input(height, width),), buf, dynamo=False, input_names=["image"],
-                          output_names=["labels", "confidence"], opset_version=17,
-                          dynamic_axes={"image": {0: "batch"}, "labels": {0: "batch"}, "confidence": {0: "batch"}})
+        torch.onnx.export(scorer, (_probe_input(height, width),), buf, dynamo=False, input_names=["image"],
+                          output_names=["scores"], opset_version=17,
+                          dynamic_axes={"image": {0: "batch"}, "scores": {0: "batch"}})
     return buf.getvalue()
 
 
 class _OnnxRunner:
-    """A Labeller exported to ONNX in memory and run by ONNX Runtime on the CPU with ``threads`` threads;
-    with ``ranges`` (quantize.load_ranges) its body runs int8."""
+    """A Scorer exported to ONNX in memory and run by ONNX Runtime on the CPU with ``threads`` threads, its
+    scores read out by :func:`read_out`; with ``ranges`` (quantize.load_ranges) its body runs int8."""
 
-    def __init__(self, labeller: Labeller, height: int, width: int, threads: int, ranges: dict | None = None):
+    def __init__(self, scorer: Scorer, height: int, width: int, threads: int, ranges: dict | None = None):
         import onnxruntime as ort  # ImportError -> the caller falls back to eager
 
-        model = export_onnx(labeller, height, width)
+        model = export_onnx(scorer, height, width)
         if ranges is not None:
             model = quantize(model, ranges)
         opts = ort.SessionOptions()
@@ -136,23 +157,22 @@ class _OnnxRunner:
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
         self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
-        self._check(labeller, _probe_input(height, width), ranges is not None)
+        self._check(scorer, _probe_input(height, width), ranges is not None)
 
-    def _check(self, labeller: Labeller, x: torch.Tensor, int8: bool) -> None:
+    def _check(self, scorer: Scorer, x: torch.Tensor, int8: bool) -> None:
         """The export must give PyTorch's labels and confidence on a fixed input (float32: to EXPORT_TOLERANCE
         and 99.9 % of labels; int8: INT8_AGREEMENT of labels)."""
         with torch.no_grad():
-            want_labels, want_conf = labeller(x)
+            want_labels, want_conf = read_out(scorer(x).numpy())
         labels, conf = self(x.numpy())
-        diff = float(np.abs(conf - want_conf.numpy()).max())
-        agree = float((labels == want_labels.numpy()).mean())
+        diff = float(np.abs(conf - want_conf).max())
+        agree = float((labels == want_labels).mean())
         if agree < (INT8_AGREEMENT if int8 else 0.999) or (diff > EXPORT_TOLERANCE and not int8):
             raise RuntimeError(f"{'int8' if int8 else 'ONNX'} export differs from PyTorch: confidence {diff:.2e}, "
                                f"labels agree {agree:.4%}")
 
     def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        labels, conf = self.session.run(None, {"image": np.ascontiguousarray(images, np.float32)})
-        return labels, conf
+        return read_out(self.session.run(None, {"image": np.ascontiguousarray(images, np.float32)})[0])
 
 
 def _probe_input(height: int, width: int) -> torch.Tensor:
@@ -174,7 +194,7 @@ class Segmenter:
     at a time). CPU inference uses ``threads`` threads (1 by default) and ``backend`` onnxruntime (default;
     eager PyTorch when onnxruntime is missing or its export fails the check) or eager. ONNX Runtime runs one
     export per image shape, made (and checked) the first time a shape is seen. ``self.backend`` says which
-    one runs. ``passes`` (1-3) averages the network over views of each image (Labeller): more accurate,
+    one runs. ``passes`` (1-3) averages the network over views of each image (Scorer): more accurate,
     ``passes`` times the network's time. ``max_beams`` (> 0): a scan of more rows has only every k-th row
     segmented (projection.beam_stride), the rows between take the labels of their nearest neighbours in the
     rows segmented (projection.nearest_strided): about 1/k of the network's time. ``knn`` (> 0): every point
@@ -206,7 +226,7 @@ class Segmenter:
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
-        self.labeller = Labeller(self.model, passes).to(self.device).eval()
+        self.scorer = Scorer(self.model, passes).to(self.device).eval()
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
         self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
@@ -284,14 +304,14 @@ class Segmenter:
         key = (int(height), int(width))
         if key not in self._onnx and self.precision == "int8":
             try:
-                self._onnx[key] = _OnnxRunner(self.labeller, *key, self.threads, self._int8_ranges)
+                self._onnx[key] = _OnnxRunner(self.scorer, *key, self.threads, self._int8_ranges)
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
                 log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
                             _first_line(e))
                 self.precision, self._onnx = "float32", {}
         if key not in self._onnx:
             try:
-                self._onnx[key] = _OnnxRunner(self.labeller, *key, self.threads)
+                self._onnx[key] = _OnnxRunner(self.scorer, *key, self.threads)
             except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
                 log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
                             type(e).__name__, _first_line(e))
@@ -302,8 +322,7 @@ class Segmenter:
     @torch.inference_mode()
     def _run_eager(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = torch.from_numpy(np.ascontiguousarray(images, np.float32)).to(self.device, non_blocking=True)
-        labels, conf = self.labeller(x)
-        return labels.cpu().numpy(), conf.float().cpu().numpy()
+        return read_out(self.scorer(x).float().cpu().numpy())
 
 
 def _first_line(e: Exception) -> str:

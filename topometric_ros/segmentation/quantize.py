@@ -2,7 +2,7 @@
 beside the weights (``rangenet.int8.json``), the exported network quantized in memory at load time.
 
 Only the body of the net runs int8 (ONNX Runtime QDQ, per-channel int8 weights, uint8 activations): the stem
-(raw ranges and coordinates in), the head (logits out) and the read-out stay float32; quantizing those too
+(raw ranges and coordinates in), the head (scores out) and the read-out (infer.read_out, numpy) stay float32; quantizing those too
 cost 13.5 mIoU (docs/results.md). On a CPU without VNNI int8 convolutions gain little (11 %) and risk
 saturation, so ``segmentation.precision: auto`` runs int8 only where the CPU has VNNI.
 """
@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 RANGES_NAME = "rangenet.int8.json"
 FORMAT_VERSION = 1
-#: RangeNet's modules that run int8 (its body); the stem, the head and the read-out stay float32.
+#: RangeNet's modules that run int8 (its body); the stem and the head stay float32.
 INT8_MODULES = ("enc2", "enc3", "fuse2", "fuse1", "refine")
 #: ONNX operators quantized inside those modules (Slice + Concat are the circular azimuth padding).
 INT8_OPS = ["Conv", "Concat", "Slice", "Relu", "Add", "Resize"]
@@ -66,19 +66,19 @@ def calibrate_scans(weights: str | Path, scans: Iterable[tuple]) -> tuple[dict, 
     """(activation ranges, range images seen, the weights' state digest) of the network of ``weights`` run
     one pass on every beam of ``scans``: (points (N, 3) sensor frame, grid.ScanGrid or beam ids, intensity)."""
     from .checkpoint import build_model, load_weights, state_digest
-    from .infer import Labeller, export_onnx
+    from .infer import Scorer, export_onnx
     from .model import fold_batchnorm
     from .projection import checked, project
 
     card, state = load_weights(weights)
-    labeller = Labeller(fold_batchnorm(build_model(card, state, str(weights)))).eval()
+    scorer = Scorer(fold_batchnorm(build_model(card, state, str(weights)))).eval()
     by_shape: dict[tuple, list[np.ndarray]] = {}
     for points, grid, intensity in scans:
         images, _ = project(*checked(points, grid, intensity), intensity)
         by_shape.setdefault(images.shape[2:], []).append(images.astype(np.float32))
     if not by_shape:
         raise ValueError("no scans to calibrate the int8 network on")
-    ranges = calibrate((export_onnx(labeller, *shape), images) for shape, images in by_shape.items())
+    ranges = calibrate((export_onnx(scorer, *shape), images) for shape, images in by_shape.items())
     n = sum(im.shape[0] for images in by_shape.values() for im in images)
     return ranges, n, state_digest(state)
 
