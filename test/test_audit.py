@@ -9,13 +9,14 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from topometric_ros.audit import COLUMNS, MANIFEST, audit, find_bags
+from topometric_ros.audit import COLUMNS, MANIFEST, SCRATCH, audit, find_bags
 from topometric_ros.cli import main
 from topometric_ros.config import load_config
 from topometric_ros.engine import ensure_ray
@@ -166,6 +167,8 @@ def test_a_worker_killed_mid_run_fails_its_bag_only_and_a_rerun_completes_it(fle
     rerun = audit(bags, tmp_path, config, engine="ray", workers=2, progress=False)
     assert (rerun.summary["ran"], rerun.summary["cached"], rerun.summary["failed"]) == (1, len(bags) - 1, 0)
     assert [r["bag"] for r in rerun.rows if not r["cached"]] == [failed[0]["bag"]]
+    scratch = Path(tempfile.gettempdir()) / SCRATCH  # the killed worker's replay folder: removed by the rerun
+    assert not list(scratch.glob(f"{killed}-*")), list(scratch.iterdir())
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -28,6 +28,7 @@ import hashlib
 import html
 import json
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field, replace
@@ -182,11 +183,38 @@ def audit_bag(task: BagTask, weights: dict[str, bytes] | None = None) -> dict:
     # one bag per CPU: the bag's per-scan stages run one after the other (window.pipelined gives the same
     # windows, in two threads; here the parallelism is across bags)
     config = replace(config, window=replace(config.window, pipelined=False))
-    with tempfile.TemporaryDirectory(prefix="topometric-audit-") as tmp:
+    with _scratch() as tmp:
         options = ReplayOptions(**task.options, plot=True, progress=False)
         res = replay(task.path, tmp, config, options)
         files = {name: (Path(tmp) / name).read_bytes() for name in REPORT_FILES if (Path(tmp) / name).is_file()}
     return {"row": fleet_row(task, res.windows, res.summary), "files": files}
+
+
+#: Folder in the machine's temp folder where tasks replay their bags, one sub-folder per replay named
+#: ``<pid>-<random>``: a task removes those of processes no longer alive (a worker killed mid-replay).
+SCRATCH = "topometric-audit"
+
+
+def _scratch() -> tempfile.TemporaryDirectory:
+    """A temporary folder for one replay under SCRATCH, after removing the folders of dead processes."""
+    root = Path(tempfile.gettempdir()) / SCRATCH
+    root.mkdir(exist_ok=True)
+    for old in root.iterdir():
+        pid = old.name.split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    return tempfile.TemporaryDirectory(prefix=f"{os.getpid()}-", dir=root)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process of that id exists (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _weights_copy(files: dict[str, bytes], digest: str) -> Path:
