@@ -465,11 +465,11 @@ def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset
         u, v = _along_and_up(pts, members, along)
         floor = np.partition(v, len(v) // 100)[len(v) // 100]
         low = np.flatnonzero(v < floor + cfg.opening_band)
-        low = low[np.argsort(u[low])]
-        gaps = np.flatnonzero(np.diff(u[low]) > cfg.opening_width)
+        gaps = np.flatnonzero(np.diff(np.sort(u[low])) > cfg.opening_width)  # np.sort: 2x faster than argsort
         if len(gaps) == 0:
             out.append(members)
             continue
+        low = low[np.argsort(u[low])]  # the points on either side of each gap
         if rays is None:
             rays = _Rays(pts, grid)
         cuts = []
@@ -552,11 +552,12 @@ def _assign_ring(pts, lab, grid, cfg) -> np.ndarray:
     that agree grow into segments; coplanar segments that touch are merged; every point goes to the nearest
     plane of its own or a neighbouring tile within inlier_distance."""
     assign = np.full(len(pts), -1, np.int64)
-    static = np.flatnonzero(np.isin(lab, C.STATIC))
+    index = _STATIC_INDEX.take(lab, mode="clip")  # class index; −1 not static (ids outside 0..255 clip to 0 or 255: neither is)
+    static = np.flatnonzero(index >= 0)
     if len(static) < 3:
         return assign, np.zeros((0, 3)), np.zeros(0)
     p = pts.take(static, axis=0)
-    ci = _STATIC_INDEX[lab[static]]
+    ci = index.take(static)
     row, col = grid.row[static], grid.col[static]
     tile_rows, tile_cols = tile_size(grid, cfg)
     tr, tc = row // tile_rows, col // tile_cols
