@@ -69,6 +69,15 @@ def test_float64_points_beyond_float32_are_not_finite_points():
     assert np.isfinite(scan.points).all() and len(scan.points) == 2 and scan.dropped["nonfinite"] == 2
 
 
+def test_nan_and_all_zero_points_are_dropped_and_counted_apart_and_the_rest_keep_their_fields():
+    nan = np.nan
+    x, y, z = (np.array(v, np.float32) for v in ([1, nan, 0, 0, 2, 0], [1, 0, 0, 3, 2, 0], [1, 0, 0, 0, nan, 0]))
+    scan = read_scan(_cloud(x=x, y=y, z=z, intensity=np.arange(6, dtype=np.float32)))
+    assert scan.dropped == {"nonfinite": 2, "no_return": 2}  # (0, 3, 0) is a return, (0, 0, 0) none
+    np.testing.assert_array_equal(scan.points, [[1, 1, 1], [0, 3, 0]])
+    np.testing.assert_array_equal(scan.intensity, [0, 3])
+
+
 def test_negative_and_huge_beam_ids_are_bad_beams():
     ring = np.array([0, 1, -3, 2**31 - 1, 5], np.int32)
     scan = read_scan(_cloud(x=np.arange(1.0, 6.0), ring=ring))

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any, Callable, Mapping, Sequence
 
+import numba
 import numpy as np
 
 #: sensor_msgs/PointField datatype constants -> numpy type codes.
@@ -104,16 +105,37 @@ def xyz(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) float32 points (sensor frame) and the (M,) bool mask of finite points they were taken by (finite
     as float32: a float64 beyond its range counts as not finite). CloudError when x, y or z is not one number
     per point."""
+    pts, finite, _ = _returns(*_xyz_float32(fields), False)
+    return pts, finite
+
+
+def _xyz_float32(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The x, y, z fields as float32 (M,) arrays (float32 fields as they are: strided views of the cloud's
+    buffer); CloudError when one is not one number per point."""
     bad = [n for n in "xyz" if fields[n].ndim != 1]
     if bad:
         raise CloudError(f"field(s) {'/'.join(bad)} must have count 1, got shape(s) {[fields[n].shape for n in bad]}")
-    pts = np.empty((len(fields["x"]), 3), np.float32)
     with np.errstate(over="ignore", invalid="ignore"):
-        for c, name in enumerate("xyz"):
-            pts[:, c] = fields[name]
-    ok = np.isfinite(pts)
-    finite = ok[:, 0] & ok[:, 1] & ok[:, 2]  # column by column: ~10x faster than .all(axis=1)
-    return pts.compress(finite, axis=0), finite
+        return tuple(fields[n] if fields[n].dtype == np.float32 else fields[n].astype(np.float32) for n in "xyz")
+
+
+@numba.njit(cache=True, nogil=True)
+def _returns(x, y, z, drop_zero):
+    """(points (K, 3) float32 in order, the (M,) bool mask of them, how many finite points were (0, 0, 0)) of
+    per-point float32 x, y, z: the finite points, and with ``drop_zero`` not (0, 0, 0) either. One pass."""
+    keep = np.empty(len(x), np.bool_)
+    pts = np.empty((len(x), 3), np.float32)
+    k = zero = 0
+    for i in range(len(x)):
+        a, b, c = x[i], y[i], z[i]
+        keep[i] = np.isfinite(a) and np.isfinite(b) and np.isfinite(c)
+        if keep[i] and a == 0 and b == 0 and c == 0:
+            zero += 1
+            keep[i] = not drop_zero
+        if keep[i]:
+            pts[k, 0], pts[k, 1], pts[k, 2] = a, b, c
+            k += 1
+    return pts[:k], keep, zero
 
 
 @dataclass
@@ -178,13 +200,10 @@ def _read_scan(msg: Any, max_beams: int) -> CloudScan:
 
     fields = read_cloud(msg)
     stamp, frame_id = _header(msg)
-    pts, keep = xyz(fields)
-    dropped = {"nonfinite": int(len(keep) - len(pts))}  # NaN: ouster-ros' and velodyne's "no return"
-    zero = (pts[:, 0] == 0) & (pts[:, 1] == 0) & (pts[:, 2] == 0)  # hesai's and livox's "no return"
-    if zero.any():
-        dropped["no_return"] = int(zero.sum())
-        keep[np.flatnonzero(keep)[zero]] = False
-        pts = pts.compress(~zero, axis=0)
+    pts, keep, zero = _returns(*_xyz_float32(fields), True)
+    dropped = {"nonfinite": int(len(keep) - len(pts) - zero)}  # NaN: ouster-ros' and velodyne's "no return"
+    if zero:  # (0, 0, 0): hesai's and livox's "no return"
+        dropped["no_return"] = int(zero)
     height, width = int(msg.height), int(msg.width)
     beam, notes = _beams(fields, height, width), []
     columns = max(height, width) if height > 1 and width > 1 else 0  # an organised cloud: firings x beams or v.v.
