@@ -119,3 +119,32 @@ def test_a_beam_too_sparse_for_the_elevation_sample_still_orders_the_rows(ids_fa
     expected = np.degrees(el)
     expected[5] = np.nan
     np.testing.assert_allclose(grid.elevation_deg, expected, atol=1e-4)
+
+
+@pytest.mark.parametrize("ids", ["rising", "falling", "scrambled"])
+def test_rows_and_their_elevations_follow_elevation_whatever_order_the_beam_ids_come_in(ids):
+    """Every beam in the elevation sample: rows bottom-up, and each row's median elevation is its beam's."""
+    beams, per_beam = 8, 90
+    el = np.radians(np.linspace(-15, 15, beams))
+    e, a = np.meshgrid(el, np.radians(np.arange(per_beam) * 4.0), indexing="ij")
+    pts = (10 * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)).reshape(-1, 3)
+    row = np.repeat(np.arange(beams), per_beam)
+    beam_id = {"rising": np.arange(beams), "falling": np.arange(beams)[::-1],
+               "scrambled": np.array([3, 7, 0, 5, 1, 6, 2, 4])}[ids]
+    grid = scan_grid(pts.astype(np.float32), beam_id[row])
+    assert np.array_equal(grid.row, row), grid.source
+    np.testing.assert_allclose(grid.elevation_deg, np.degrees(el), atol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_an_azimuth_goes_to_the_cell_centred_nearest_to_it(dtype):
+    from topometric_ros.grid import azimuth_cells
+
+    width = 1800
+    centres = np.arange(-width // 2, width // 2) * (2 * np.pi / width)
+    cells = np.arange(-width // 2, width // 2) % width  # column 0 at +x, counter-clockwise, wrapping at ±π
+    np.testing.assert_array_equal(azimuth_cells(centres.astype(dtype), width), cells)
+    off = 0.4 * 2 * np.pi / width  # under half a cell either side: the same cell
+    np.testing.assert_array_equal(azimuth_cells((centres + off).astype(dtype), width), cells)
+    np.testing.assert_array_equal(azimuth_cells((centres - off).astype(dtype), width), cells)
+    assert azimuth_cells(np.array([-1e-9, np.pi - 1e-6], dtype), width).tolist() == [0, width // 2]

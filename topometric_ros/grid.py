@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 GRID_ALIGN = 8  # width multiple (the network folds 4 columns and halves them once)
@@ -66,7 +67,16 @@ def elevation_deg(points: np.ndarray) -> np.ndarray:
 def azimuth_cells(azimuth: np.ndarray, width: int) -> np.ndarray:
     """(N,) cell of each azimuth (rad, atan2(y, x)): round(azimuth / 2π · width) mod width (cell c centred on
     azimuth c · 2π / width; column 0 at +x, counter-clockwise)."""
-    return (np.rint(azimuth * np.float32(width / (2 * np.pi))).astype(np.int64) % width).astype(np.int32)
+    return _cells(np.asarray(azimuth), np.float32(width / (2 * np.pi)).astype(np.asarray(azimuth).dtype), int(width))
+
+
+@numba.njit(cache=True, nogil=True)
+def _cells(azimuth, scale, width):
+    """azimuth_cells in one pass (the product in the azimuth's own precision, as numpy's)."""
+    out = np.empty(len(azimuth), np.int32)
+    for i in range(len(azimuth)):
+        out[i] = np.int64(np.rint(azimuth[i] * scale)) % width
+    return out
 
 
 def aligned(width: int) -> int:
@@ -90,11 +100,11 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
         return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
     non_repetitive = model is not None and model.pattern == "non_repetitive"
     az, azimuth = np.arctan2(pts[:, 1], pts[:, 0]), None  # azimuth: kept for a non-repetitive grid only
+    row_el = None  # each row's median elevation (deg), when _rows_from_beams found it on the way
     if beam is not None and not non_repetitive:  # rows from the ids: elevations of a sample suffice
-        row, height, source, el_sample = _rows_from_beams(np.asarray(beam).astype(np.int64), pts, model)
+        row, height, source, row_el = _rows_from_beams(np.asarray(beam).astype(np.int64), pts, model)
     else:
         el = elevation_deg(pts)
-        el_sample = el[::SAMPLE]
         if model is not None and not non_repetitive:
             row, height, source = _nearest(el, np.asarray(model.elevation_deg)), model.beams, f"{model.name} beam table"
         else:
@@ -109,8 +119,9 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
                 row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
     width = aligned(model.columns if model is not None
                     else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
-    return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width,
-                    _row_elevations(row[::SAMPLE], el_sample, height), source, azimuth)
+    if row_el is None:
+        row_el = _row_elevations(row[::SAMPLE], el[::SAMPLE], height)
+    return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width, row_el, source, azimuth)
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
@@ -130,8 +141,8 @@ def image_columns(points: int, rows: int) -> int:
 
 def _rows_from_beams(beam: np.ndarray, pts: np.ndarray, model) -> tuple[np.ndarray, int, str, np.ndarray]:
     """Rows from the cloud's beam ids, bottom-up: kept as they are when the ids rise with elevation, reversed
-    when they fall (Ouster), else ranked by each id's median elevation. Returns (row, height, source, the
-    elevations (deg) of every SAMPLE-th point)."""
+    when they fall (Ouster), else ranked by each id's median elevation. Returns (row, height, source, each row's
+    median elevation (deg, NaN for none) over every SAMPLE-th point: _row_elevations)."""
     height = model.beams if model is not None else int(beam.max()) + 1
     sub = slice(None, None, SAMPLE)
     ids = unique_ids(beam)
@@ -139,15 +150,20 @@ def _rows_from_beams(beam: np.ndarray, pts: np.ndarray, model) -> tuple[np.ndarr
     part = sub if sampled else slice(None)
     el = elevation_deg(pts[part])
     med = _medians(beam[part], el, ids)
-    el = el if sampled else el[sub]
     steps = np.diff(med)
     if len(steps) == 0 or np.all(steps > 0):
-        return beam, height, "ring field", el
-    if np.all(steps < 0):
-        return height - 1 - beam, height, "ring field (top-down, reversed)", el
-    rank = np.empty(height, np.int64)
-    rank[ids[np.argsort(med, kind="stable")]] = np.arange(len(ids))
-    return rank[beam], len(ids), "ring field (ranked by elevation)", el
+        row, row_of_ids, source = beam, ids, "ring field"
+    elif np.all(steps < 0):
+        row, row_of_ids, source = height - 1 - beam, height - 1 - ids, "ring field (top-down, reversed)"
+    else:
+        rank = np.empty(height, np.int64)
+        rank[ids[np.argsort(med, kind="stable")]] = np.arange(len(ids))
+        row, row_of_ids, source, height = rank[beam], rank[ids], "ring field (ranked by elevation)", len(ids)
+    if not sampled:
+        return row, height, source, _row_elevations(row[sub], el[sub], height)
+    row_el = np.full(height, np.nan)  # the sample's median per id is its row's: the same points, grouped alike
+    row_el[row_of_ids] = med
+    return row, height, source, row_el
 
 
 def unique_ids(ids: np.ndarray) -> np.ndarray:
