@@ -78,6 +78,22 @@ def test_nan_and_all_zero_points_are_dropped_and_counted_apart_and_the_rest_keep
     np.testing.assert_array_equal(scan.intensity, [0, 3])
 
 
+@pytest.mark.parametrize("t, note", [
+    ([0.0, 0.01, np.nan, 0.03], "neither a time relative"),  # a NaN time: the field is not used
+    ([0.0, 0.01, 1.5, 0.03], "not one sweep"),  # seconds after the stamp, but 1.5 s of them
+    ([0.02] * 4, "constant"),
+    ([0.0, 0.01, 0.02, 0.03], ""),
+])
+def test_a_time_field_is_used_only_when_the_kept_points_times_make_one_sweep(t, note):
+    x = np.array([1.0, 2.0, 3.0, 4.0, np.nan])  # the last point is no return: its time (99 s) is not looked at
+    scan = read_scan(_cloud(x=x, t=np.array(t + [99.0], np.float32)))
+    if note:
+        assert scan.time is None and note in scan.notes[0], scan.notes
+    else:
+        np.testing.assert_array_equal(scan.time, np.array(t, np.float32))
+        assert not scan.notes
+
+
 def test_negative_and_huge_beam_ids_are_bad_beams():
     ring = np.array([0, 1, -3, 2**31 - 1, 5], np.int32)
     scan = read_scan(_cloud(x=np.arange(1.0, 6.0), ring=ring))

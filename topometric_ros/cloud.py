@@ -259,22 +259,47 @@ def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> 
     name = next((n for n in TIME_FIELDS if n in fields and fields[n].ndim == 1), None)
     if name is None:
         return None, ""
-    raw = fields[name][keep]
-    if len(raw) == 0:
+    raw = fields[name]
+    if not keep.any():
         return None, ""
-    v = raw.astype(np.float64)
-    ends = np.array([v.min(), v.max()])  # v * scale - ref is monotone in v: its largest |.| is at an end
+    ends = np.array(_kept_range(raw, keep))  # v * scale - ref is monotone in v: its largest |.| is at an end
     unit = next(((scale, ref) for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
                  if np.abs(ends * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
     if unit is None:
         return None, f"time field {name!r} is neither a time relative to the header stamp nor near it; not used"
-    t = v * unit[0] - unit[1]
-    span = float(np.ptp(t))
+    t = _kept_times(raw, keep, *unit)
+    first, last = (float(v) for v in np.array(ends) * unit[0] - unit[1])
+    span = last - first
     if span == 0.0:
         return None, f"time field {name!r} is constant; times from the azimuth instead"
-    if span > MAX_SWEEP_S or np.abs(t).max() > 2 * MAX_SWEEP_S:
+    if span > MAX_SWEEP_S or max(abs(first), abs(last)) > 2 * MAX_SWEEP_S:
         return None, f"time field {name!r} spans {span:.3g} s, not one sweep; not used"
-    return t.astype(np.float32), ""
+    return t, ""
+
+
+@numba.njit(cache=True, nogil=True)
+def _kept_range(raw, keep):
+    """(lowest, highest) of raw[keep] as float64 (NaN, NaN when one is NaN); keep holds at least one True."""
+    lo, hi = np.inf, -np.inf
+    for i in range(len(raw)):
+        if keep[i]:
+            v = np.float64(raw[i])
+            if v != v:
+                return np.nan, np.nan
+            lo, hi = min(lo, v), max(hi, v)
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _kept_times(raw, keep, scale, ref):
+    """float32 (raw[keep] as float64 * scale - ref), in one pass."""
+    out = np.empty(np.count_nonzero(keep), np.float32)
+    k = 0
+    for i in range(len(raw)):
+        if keep[i]:
+            out[k] = np.float64(raw[i]) * scale - ref
+            k += 1
+    return out
 
 
 def pack_cloud(arrays: Mapping[str, np.ndarray], align: int = 1) -> tuple[list[tuple[str, int, int, int]], int, np.ndarray]:
