@@ -434,3 +434,27 @@ def test_a_wall_or_pillar_facing_up_or_down_is_dropped():
     steep = Rotation.from_euler("y", 40, degrees=True).apply([-1.0, 0.0, 0.0])  # normal 40° above level: still a wall
     leaning, _, ring_l = _plane_scan(steep, 3.0, max_range=15.0)
     assert [p.cls for p in detect_planes(leaning, np.full(len(leaning), C.WALL, np.uint8), ring_l)] == [C.WALL]
+
+
+def test_neighbouring_tiles_pair_once_across_the_azimuth_seam_but_not_across_the_top_and_bottom_rows():
+    from topometric_ros.planes import _neighbour_pairs
+
+    grid = np.array([[[0, -1, 1],
+                      [2, 2, -1],
+                      [-1, -1, -1]],
+                     [[3, -1, -1],
+                      [-1, -1, 4],
+                      [5, -1, -1]]])  # two classes' (rows, cols) tile ids; the columns wrap around
+    a, b = _neighbour_pairs(grid)
+    # class 0: 0-1 across the seam, 0-2 below, 1-2 (down-left and down-right across the seam); 2 | 2 no pair.
+    # class 1: 3-4 and 4-5 diagonal across the seam; 5 (bottom row) and 3 (top row) do not meet
+    assert list(zip(a.tolist(), b.tolist())) == [(0, 1), (0, 2), (1, 2), (3, 4), (4, 5)]
+    assert [len(x) for x in _neighbour_pairs(np.full((1, 2, 3), -1))] == [0, 0]
+
+
+def test_groups_list_each_plane_points_in_order_and_skip_unused_ids():
+    from topometric_ros.planes import _groups
+
+    groups = _groups(np.array([2, -1, 0, 2, 0, -1, 5, 2]))
+    assert {g: m.tolist() for g, m in groups.items()} == {0: [2, 4], 2: [0, 3, 7], 5: [6]}
+    assert _groups(np.full(4, -1)) == {}

@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from . import classes as C
-from .grid import argsort_ids, as_grid
+from .grid import as_grid
 
 # Rows of (N, k) arrays are gathered with .take(i, axis=0) / .compress(mask, axis=0): the same as a[i] /
 # a[mask], several times faster in numpy for large N.
@@ -436,13 +436,31 @@ class _Rays:
 
 
 def _groups(assign: np.ndarray) -> dict[int, np.ndarray]:
-    """{group id: indices of its points} for the ids >= 0 in ``assign``."""
-    idx = np.flatnonzero(assign >= 0)
-    key = assign[idx]
-    order = idx[argsort_ids(key)]
-    sizes = np.bincount(key)
+    """{group id: indices of its points, ascending} for the ids >= 0 in ``assign``."""
+    if not (assign >= 0).any():
+        return {}
+    order, sizes = _counting_sort(assign, int(assign.max()) + 1)
     ids = np.flatnonzero(sizes)
     return dict(zip(ids.tolist(), np.split(order, np.cumsum(sizes[ids])[:-1])))
+
+
+@numba.njit(cache=True, nogil=True)
+def _counting_sort(assign, n):
+    """(indices of the entries of ``assign`` in 0..n−1 ordered by value, stably; (n,) count of each value)."""
+    sizes = np.zeros(n, np.int64)
+    for i in range(len(assign)):
+        if assign[i] >= 0:
+            sizes[assign[i]] += 1
+    start = np.zeros(n, np.int64)
+    for g in range(1, n):
+        start[g] = start[g - 1] + sizes[g - 1]
+    order = np.empty(start[n - 1] + sizes[n - 1], np.int64)
+    for i in range(len(assign)):
+        g = assign[i]
+        if g >= 0:
+            order[start[g]] = i
+            start[g] += 1
+    return order, sizes
 
 
 def _split_at_openings(pts: np.ndarray, groups: dict, normal: np.ndarray, offset: np.ndarray, grid,
@@ -698,27 +716,35 @@ def _components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
     return len(roots), component
 
 
-def _shifted(grid: np.ndarray, dr: int, dc: int) -> np.ndarray:
-    """grid[..., r + dr, c + dc] (columns wrap around, rows outside the grid give −1)."""
-    out = np.roll(grid, -dc, axis=-1)
-    if dr > 0:
-        out = np.concatenate([out[..., dr:, :], np.full_like(out[..., :dr, :], -1)], axis=-2)
-    elif dr < 0:
-        out = np.concatenate([np.full_like(out[..., dr:, :], -1), out[..., :dr, :]], axis=-2)
-    return out
-
-
 def _neighbour_pairs(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct (a, b) ids of 8-neighbouring cells of a (..., rows, cols) id grid (−1 empty), each pair once."""
-    keys = []
-    n = int(grid.max()) + 1
-    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
-        b = _shifted(grid, dr, dc)
-        m = (grid >= 0) & (b >= 0) & (grid != b)
-        lo, hi = np.minimum(grid[m], b[m]), np.maximum(grid[m], b[m])
-        keys.append(lo * n + hi)
-    keys = np.unique(np.concatenate(keys))
-    return keys // max(n, 1), keys % max(n, 1)
+    """Distinct (a, b) ids (a < b, sorted) of 8-neighbouring cells of a (..., rows, cols) id grid (−1 empty;
+    columns wrap around, rows do not)."""
+    n = max(int(grid.max()) + 1, 1)
+    keys = np.unique(_pair_keys(np.ascontiguousarray(grid).reshape(-1, *grid.shape[-2:]), n))
+    return keys // n, keys % n
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_keys(grid, n):
+    """lo · n + hi of every pair of different ids in cells that touch (right, down-left, down, down-right) of
+    (layers, rows, cols) id grids; repeats kept."""
+    layers, rows, cols = grid.shape
+    keys = np.empty(4 * grid.size, np.int64)
+    k = 0
+    for g in range(layers):
+        for r in range(rows):
+            for c in range(cols):
+                a = grid[g, r, c]
+                if a < 0:
+                    continue
+                for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+                    if r + dr >= rows:
+                        continue
+                    b = grid[g, r + dr, (c + dc) % cols]
+                    if b >= 0 and b != a:
+                        keys[k] = min(a, b) * n + max(a, b)
+                        k += 1
+    return keys[:k]
 
 
 def _near_pairs(where: np.ndarray, gap: float) -> tuple[np.ndarray, np.ndarray]:
