@@ -262,13 +262,13 @@ def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> 
     raw = fields[name]
     if not keep.any():
         return None, ""
-    ends = np.array(_kept_range(raw, keep))  # v * scale - ref is monotone in v: its largest |.| is at an end
+    ends = np.array(_kept_range(raw, keep))  # v * scale - ref is monotone in v: its extremes are at the ends
     unit = next(((scale, ref) for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
                  if np.abs(ends * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
     if unit is None:
         return None, f"time field {name!r} is neither a time relative to the header stamp nor near it; not used"
     t = _kept_times(raw, keep, *unit)
-    first, last = (float(v) for v in np.array(ends) * unit[0] - unit[1])
+    first, last = (float(v) for v in ends * unit[0] - unit[1])
     span = last - first
     if span == 0.0:
         return None, f"time field {name!r} is constant; times from the azimuth instead"

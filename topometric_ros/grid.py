@@ -67,7 +67,8 @@ def elevation_deg(points: np.ndarray) -> np.ndarray:
 def azimuth_cells(azimuth: np.ndarray, width: int) -> np.ndarray:
     """(N,) cell of each azimuth (rad, atan2(y, x)): round(azimuth / 2π · width) mod width (cell c centred on
     azimuth c · 2π / width; column 0 at +x, counter-clockwise)."""
-    return _cells(np.asarray(azimuth), np.float32(width / (2 * np.pi)).astype(np.asarray(azimuth).dtype), int(width))
+    azimuth = np.asarray(azimuth)
+    return _cells(azimuth, np.float32(width / (2 * np.pi)).astype(azimuth.dtype), int(width))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -76,6 +77,16 @@ def _cells(azimuth, scale, width):
     out = np.empty(len(azimuth), np.int32)
     for i in range(len(azimuth)):
         out[i] = np.int64(np.rint(azimuth[i] * scale)) % width
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def cell_points(row, col, height, width):
+    """(height · width,) index of the point in each grid cell, row-major (the last of several), −1 for none.
+    Compiled into other numba kernels (knn._vote): after editing it, clear numba's cache (__pycache__/*.nbi)."""
+    out = np.full(height * width, -1, np.int64)
+    for i in range(len(row)):
+        out[row[i] * width + col[i]] = i
     return out
 
 

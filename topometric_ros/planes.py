@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from . import classes as C
-from .grid import as_grid
+from .grid import as_grid, cell_points
 
 # Rows of (N, k) arrays are gathered with .take(i, axis=0) / .compress(mask, axis=0): the same as a[i] /
 # a[mask], several times faster in numpy for large N.
@@ -414,7 +414,7 @@ class _Rays:
     from the row's median elevation and the cell's azimuth centre, grid.azimuth_cells). One point per cell is enough here."""
 
     def __init__(self, pts: np.ndarray, grid):
-        self.grid = _cell_points(grid.row, grid.col, grid.height, grid.width)
+        self.grid = cell_points(grid.row, grid.col, grid.height, grid.width).reshape(grid.height, grid.width)
         self.ring_seen = np.isfinite(grid.elevation_deg)
         self.ring_elev = np.radians(np.nan_to_num(grid.elevation_deg))
         self.pts, self.col, self.bins = pts, grid.col, grid.width
@@ -432,15 +432,6 @@ class _Rays:
         e, az = self.ring_elev[er], cols[ec] * (2 * np.pi / w)
         empty = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], 1)
         return self.pts.take(block[block >= 0], axis=0), empty
-
-
-@numba.njit(cache=True, nogil=True)
-def _cell_points(row, col, height, width):
-    """(height, width) index of the point in each grid cell (the last of several), −1 for none."""
-    out = np.full((height, width), -1, np.int64)
-    for i in range(len(row)):
-        out[row[i], col[i]] = i
-    return out
 
 
 def _groups(assign: np.ndarray) -> dict[int, np.ndarray]:

@@ -14,7 +14,7 @@ import numba
 import numpy as np
 
 from .. import classes as C
-from ..grid import ScanGrid
+from ..grid import ScanGrid, cell_points
 
 #: Rows x columns of grid cells around a point whose points may vote (chosen with k = 3 and 0.5 m on the
 #: validation layout: docs/results.md).
@@ -43,9 +43,7 @@ def knn_vote(points: np.ndarray, grid: ScanGrid, labels: np.ndarray, confidence:
 @numba.njit(cache=True, nogil=True)
 def _vote(points, row, col, height, width, labels, conf, k, rows, columns, distance2, classes, out_labels, out_conf):
     """Fill out_labels / out_conf (copies of labels / conf) with each point's vote; see knn_vote."""
-    occupant = np.full(height * width, -1, np.int64)  # the point of each cell (the last, where several share it)
-    for i in range(len(points)):
-        occupant[row[i] * width + col[i]] = i
+    occupant = cell_points(row, col, height, width)
     across = _classes_across(occupant, labels, height, width, columns)
     best_d = np.empty(k)
     best_j = np.empty(k, np.int64)
