@@ -60,6 +60,7 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["inspect", "bag", "--every", "0"], "argument --every: expected a whole number >= 1"),
                         (["eval-seg", "bag", "--every", "x"], "argument --every: expected a whole number >= 1"),
                         (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range"),
+                        (["replay", "bag", "--out", "o", "--window-size", "1"], "'window.size' = 1 is out of range"),
                         (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
@@ -80,3 +81,26 @@ def test_alarms_grid_takes_health_settings_in_their_own_type_and_refuses_others(
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--grid", bad],
                              capture_output=True, text=True)
         assert res.returncode == 2 and why in res.stderr, (bad, res.stderr)
+
+
+def test_an_output_that_is_a_file_or_a_bag_that_is_none_is_a_one_line_error(tmp_path):
+    """--out naming a file (or a folder under one), a text file or an empty folder given as the bag: exit 2 and
+    one line that says which, before any output folder is made. --version answers."""
+    afile, empty = tmp_path / "notes.txt", tmp_path / "empty"
+    afile.write_text("not a bag")
+    empty.mkdir()
+    cases = ((["replay", str(empty), "--out", str(afile)], f"--out {afile} is a file; give a folder"),
+             (["inspect", str(empty), "--out", str(afile / "sub")],
+              f"--out {afile / 'sub'}: cannot make a folder in {afile} (a file)"),
+             (["replay", str(afile), "--out", str(tmp_path / "o1")],
+              f"{afile} is not a rosbag2 bag: give a bag folder or its .mcap or .db3 file"),
+             (["inspect", str(empty), "--out", str(tmp_path / "o2")],
+              f"no rosbag2 bag at {empty} (a bag folder has metadata.yaml and .mcap or .db3 files)"))
+    for argv, words in cases:
+        res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv], capture_output=True, text=True)
+        assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+    from topometric_ros import __version__
+
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "--version"], capture_output=True, text=True)
+    assert res.returncode == 0 and res.stdout.strip() == f"topometric {__version__}"

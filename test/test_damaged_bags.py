@@ -113,10 +113,14 @@ def sqlite_intact(rows: list[tuple[int, set[int]]], lost_pages: set[int], whole_
 
 
 # ------------------------------------------------------------------ damage
-def copy_bag(src: Path, dst: Path, metadata: bool = True) -> Path:
+def copy_bag(src: Path, dst: Path, metadata: bool | str = True) -> Path:
+    """A copy of the bag; metadata False: without metadata.yaml, "cut": its first 200 bytes, "empty": 0 bytes."""
     shutil.copytree(src, dst)
+    meta = dst / "metadata.yaml"
     if not metadata:
-        (dst / "metadata.yaml").unlink()
+        meta.unlink()
+    elif metadata in ("cut", "empty"):
+        meta.write_bytes(meta.read_bytes()[:200] if metadata == "cut" else b"")
     return next(dst.glob("*.mcap")) if any(dst.glob("*.mcap")) else next(dst.glob("*.db3"))
 
 
@@ -155,6 +159,8 @@ def mcap_variants(src: Path, root: Path):
     variant("mcap_truncated", cut=int(size * 0.6))
     variant("mcap_zeroed_chunk_and_truncated", [whole], cut=int(size * 0.8))
     variant("mcap_no_metadata_yaml", metadata=False)
+    variant("mcap_no_metadata_yaml_but_a_cut_one", metadata="cut")
+    variant("mcap_no_metadata_yaml_but_an_empty_one", metadata="empty")
     return out
 
 
@@ -235,6 +241,7 @@ def test_every_damaged_variant_keeps_every_intact_scan(bags, tmp_path):
         assert notes, name  # every variant says what it met
         damaged = any(n.startswith("damaged bag:") for n in notes)
         assert damaged == ("no_metadata" not in name or "truncated" in name), (name, notes)
+        assert ("no_metadata" in name) == any("metadata.yaml" in n for n in notes), (name, notes)
         if damaged and "truncated" not in name or "and_truncated" in name:  # damage in the middle: read past it
             assert counts["recovered"] > 0 and counts["chunks_damaged"] + counts["rows_skipped"] > 0, (name, counts)
 
@@ -255,13 +262,14 @@ def test_an_undamaged_bag_reads_as_rosbags_reads_it(bags):
 
 
 def test_what_is_no_bag_at_all_is_a_bag_error(tmp_path):
-    """A folder without storage files and a file that is neither MCAP nor sqlite3 (rosbags tries them too)."""
+    """A folder without storage files and a file that is no .mcap or .db3: each a BagError that says which."""
     from topometric_ros import bag
 
     (tmp_path / "empty").mkdir()
     (tmp_path / "x.bag").write_bytes(b"not a bag at all")
-    for path in (tmp_path / "empty", tmp_path / "x.bag"):
-        with pytest.raises(bag.BagError, match="cannot open bag"):
+    for path, why in ((tmp_path / "empty", "no rosbag2 bag at .*empty \\(a bag folder has metadata.yaml"),
+                      (tmp_path / "x.bag", "x.bag is not a rosbag2 bag: give a bag folder or its .mcap or .db3 file")):
+        with pytest.raises(bag.BagError, match=why):
             bag.topics(path)
-        with pytest.raises(bag.BagError, match="cannot open bag"):
+        with pytest.raises(bag.BagError, match=why):
             list(bag.read_messages(path))

@@ -49,7 +49,7 @@ def test_azimuth_times_follow_a_clockwise_sweep_from_the_first_point():
 
 
 def test_the_monitor_waits_for_odometry_past_the_sweep_before_it_deskews():
-    cfg = load_config(overrides={"segmentation.mode": "none", "window.size": 1, "window.pose_wait_s": 0.0})
+    cfg = load_config(overrides={"segmentation.mode": "none", "window.size": 2, "window.pose_wait_s": 0.0})
     m = Monitor(cfg)
     pts = np.random.default_rng(2).uniform(-5, 5, (2000, 3)).astype(np.float32)
     times = np.linspace(0.0, 0.1, 2000)
@@ -59,7 +59,7 @@ def test_the_monitor_waits_for_odometry_past_the_sweep_before_it_deskews():
     assert m.pending_length == 1
     m.add_pose(10.1, np.eye(4))
     assert m.pending_length == 0 and m.counters["scans_deskewed"] == 1
-    off = Monitor(load_config(overrides={"segmentation.mode": "none", "window.size": 1, "sensor.deskew": "off"}))
+    off = Monitor(load_config(overrides={"segmentation.mode": "none", "window.size": 2, "sensor.deskew": "off"}))
     off.add_pose(10.0, np.eye(4))
     off.add_pose(10.2, np.eye(4))
     off.add_scan(10.0, pts, time=times)

@@ -124,6 +124,23 @@ def test_extrinsic_from_tf_static_wins_over_config():
     np.testing.assert_allclose(m.extrinsic[:3, 3], [0, 0, SENSOR_HEIGHT])
 
 
+def test_the_last_cloud_says_why_its_points_or_fields_were_not_all_used():
+    """last_note (the node's cloud_note): a ring id beyond the named model's beams asks whether sensor.model is
+    right; a constant time field says the azimuth gives the times; a cloud that uses everything clears it."""
+    types = rosbags_types(bag.typestore())
+    m = Monitor(config(**{"sensor.model": "VLP-16"}), floor_scan, floor_window)
+    pts = floor_points()[:40]
+    ring = np.arange(40, dtype=np.uint16) % 20  # rings 16-19 are no VLP-16 beam: 8 points
+    fields = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "ring": ring}
+    m.add_cloud(make_cloud({**fields, "time": np.zeros(40, np.float32)}, 0.05, "velodyne", types))
+    assert m.last_note == ("time field 'time' is constant; times from the azimuth instead; 8 points dropped: beam id "
+                           "outside 0..15, the 16 beams of sensor.model VLP-16; is sensor.model right?")
+    assert m.counters["bad_beam_points"] == 8 and m.cloud_notes == {"time field 'time' is constant; times from the "
+                                                                     "azimuth instead": 1}
+    m.add_cloud(make_cloud({**fields, "ring": ring % 16}, 0.15, "velodyne", types))
+    assert m.last_note == "" and m.counters["bad_beam_points"] == 8
+
+
 def test_static_transform_chains_compose():
     tf = StaticTransforms()
     a = geometry.yaw_pose(1.0, 0.0, 0.0, np.pi / 2)

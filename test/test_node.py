@@ -528,6 +528,7 @@ def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_pat
         status = next(s for s in got[1].status if s.name == CONSISTENCY and "window_end" in values(s))
         v = values(status)
         assert v["extrinsic"] == "tf_static" and v["windows"] == "1", v
+        assert v["cloud_note"] == "" and v["bad_beam_points"] == "0", v  # every field of the driver's clouds used
         assert abs(float(v["window_end"]) - float(v["window_start"]) - 0.2) < 0.01, v  # scans 1-3 of a 10 Hz sweep
         assert int(v["scans_processed"]) == 3 and int(v["dropped_scans"]) == 0, v
         assert int(v["n_planes"]) >= 3 * 12, v  # 13-96 planes a scan on these captures (topometric inspect)

@@ -68,3 +68,25 @@ def test_inspect_says_how_the_network_ran(tmp_path, capsys):
     assert main(["inspect", str(path), "--out", str(tmp_path / "f32"), "--no-plot",
                  "--set", "segmentation.precision=float32"]) == 0
     assert "segmentation network, float32 inference," in capsys.readouterr().out
+
+
+def test_inspect_says_what_it_left_out_and_what_a_wrong_sensor_model_cost(tmp_path, capsys):
+    """--limit stops early and says so (0 = every cloud); named as a 64-beam model, the 128-beam capture loses
+    the points of beams 64-127, and the console counts them and asks whether sensor.model is right. The table's
+    columns line up."""
+    from topometric_ros.cli import main
+    from topometric_ros.cloud import read_scan
+
+    path = ROOT / "os1_128_lowbw_3scans_poses"
+    assert main(["inspect", str(path), "--out", str(tmp_path / "two"), "--no-plot", "--limit", "2", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "the first 2 clouds (every 1); --limit 0 inspects them all" in out
+    assert main(["inspect", str(path), "--out", str(tmp_path / "all"), "--no-plot", "--limit", "0", "--quiet",
+                 "--set", "sensor.model=OS1-64"]) == 0
+    out = capsys.readouterr().out
+    lost = sum(int((read_scan(m).beam >= 64).sum()) for t, _, m in bag.read_messages(path) if t == "/ouster/points")
+    assert lost > 100_000 and "the first" not in out
+    assert (f"note: {lost} points dropped: beam id outside 0..63, the 64 beams of sensor.model OS1-64; is "
+            "sensor.model right?") in out
+    table = out.splitlines()[1:5]  # the header and the 3 clouds
+    assert table[0].split()[:2] == ["scan", "layout"] and len({len(line) for line in table}) == 1, table

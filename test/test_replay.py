@@ -16,7 +16,8 @@ from topometric_ros.bag import BagError
 from topometric_ros.config import load_config
 from topometric_ros.pipeline import ProcessedScan, WindowResult
 from topometric_ros.metrics.rpe import rpe as relative_pose_error
-from topometric_ros.replay import ReplayOptions, network_options, replay
+from topometric_ros.replay import ReplayOptions, metrics_figure, network_options, replay
+from topometric_ros.reports import pyplot
 
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
@@ -114,8 +115,7 @@ def test_reports_hold_stamps_at_full_precision_and_strict_json(office_bag, tmp_p
 def test_metrics_png_says_what_it_shows_and_keeps_its_legend_off_the_data(office_bag, tmp_path):
     """Title: bag and segmentation mode; a unit on every axis; one legend outside every plot, with the WARN and
     ERROR limits and the baseline-learning span (health.baseline_windows = 2 here: shaded over windows 0-1)."""
-    from topometric_ros.replay import metrics_figure, plot_metrics
-    from topometric_ros.reports import pyplot
+    from topometric_ros.replay import plot_metrics
 
     bag_path, truth = office_bag
     res = run(bag_path, tmp_path / "out", plot=False)
@@ -298,6 +298,12 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
                               ["--segmentation", "labels", "--points-topic", "/lidar"],
                               "PointCloud2 topic /lidar is not in the bag (its PointCloud2 topics: /front/points, /points)",
                               "name one with --points-topic"),
+        "named_topic_never_swapped": (bag_path, ["--segmentation", "labels", "--points-topic", "/lidar"],
+                                      "PointCloud2 topic /lidar is not in the bag (its PointCloud2 topics: /points)",
+                                      "name one with --points-topic"),
+        "named_odometry_never_swapped": (bag_path, ["--segmentation", "labels", "--odom-topic", "/slam"],
+                                         "no odometry: /slam is not in the bag (its Odometry topics: /odom, /odom_gt)",
+                                         "name the topic with --odom-topic"),
         "topic_of_another_type": (bag_path, ["--segmentation", "none", "--points-topic", "/odom"],
                                   "topic /odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/PointCloud2", ""),
     }
@@ -345,15 +351,48 @@ def test_a_folder_that_is_no_bag_is_refused_before_anything_runs(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_points_lost_to_a_wrong_sensor_model_and_unused_time_fields_are_reported(office_bag, tmp_path, capsys):
+    """A 32-beam bag replayed as a VLP-16 loses its beams 16-31: the console and windows.json give the points
+    dropped and ask whether sensor.model is right. Clouds whose time field reads 0 everywhere say, per cloud
+    count, why it was not used (the azimuth gives the times)."""
+    from topometric_ros.cloud import read_scan
+
+    bag_path, _ = office_bag
+
+    def zero_time(topic, msg):
+        if topic != "/points":
+            return [(topic, msg)]
+        (offset,) = [f.offset for f in msg.fields if f.name == "time"]
+        data = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step).copy()
+        data[:, offset:offset + 4] = 0
+        msg = copy.copy(msg)
+        msg.data = data.reshape(-1)
+        return [(topic, msg)]
+
+    short = rewrite(bag_path, tmp_path / "short", zero_time, scans=6)
+    from topometric_ros import bag
+
+    lost = sum(int((read_scan(m).beam >= 16).sum()) for t, _, m in bag.read_messages(short) if t == "/points")
+    code, out, summary = replay_cli(short, tmp_path / "out", capsys, "--segmentation", "labels", "--window-size",
+                                    "3", "--set", "sensor.model=VLP-16")
+    assert code == 0 and summary["windows"] == 2 and summary["counters"]["bad_beam_points"] == lost > 0, out
+    note = f"{lost} points dropped: beam id outside 0..15, the 16 beams of sensor.model VLP-16; is sensor.model right?"
+    assert note in summary["notes"] and f"note           {note}" in out
+    assert "6 clouds: time field 'time' is constant; times from the azimuth instead" in summary["notes"], out
+
+
 def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tmp_path, capsys):
-    """Scans processed but no window (3 scans, windows of 5): not a bare "windows 0" but the reason and the
-    option that gives a window; with that option, one window."""
+    """Scans processed but no window (3 scans, windows of 5): not a bare "windows 0" but exit 1, the reason and
+    the option that gives a window, also on metrics.png; with that option, one window."""
     bag_path, _ = office_bag
     rewrite(bag_path, tmp_path / "three", lambda t, m: [(t, m)], scans=3)
     code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out", capsys, "--segmentation", "labels")
-    assert code == 0 and summary["scans_processed"] == 3 and summary["windows"] == 0, out
+    assert code == 1 and summary["scans_processed"] == 3 and summary["windows"] == 0, out
     assert ("note           no window: 3 scans processed, fewer than a window of window.size = 5; replay with "
             "--window-size 3") in out
+    fig = metrics_figure([], None, summary)  # metrics.png says so too, not six empty panels alone
+    assert any(t.get_text().startswith("NO WINDOW\nno window: 3 scans processed") for t in fig.texts)
+    pyplot().close(fig)
     code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out3", capsys, "--segmentation", "labels",
                                     "--window-size", "3")
     assert code == 0 and summary["windows"] == 1 and "no window" not in out, out

@@ -55,8 +55,7 @@ def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]
             for topic, (kind, n) in topics(p).items():
                 table[topic] = (kind, table.get(topic, (kind, 0))[1] + n)
         return table
-    if not Path(path).exists():
-        raise BagError(f"bag not found: {path}")
+    check_bag(path)
     try:
         return storage.topic_table(path)
     except storage.Unsupported:
@@ -65,17 +64,30 @@ def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
+def check_bag(path: str | Path) -> None:
+    """BagError unless ``path`` is a rosbag2 bag folder or a .mcap / .db3 file, saying which it is not."""
+    from . import storage
+
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    if path.is_dir() and not storage.is_bag_folder(path):
+        raise BagError(f"no rosbag2 bag at {path} (a bag folder has metadata.yaml and .mcap or .db3 files)")
+    if path.is_file() and path.suffix not in (".mcap", ".db3"):
+        raise BagError(f"{path} is not a rosbag2 bag: give a bag folder or its .mcap or .db3 file")
+
+
 def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = "", default: str = "",
                exclude: Iterable[str] = ()) -> tuple[str, str]:
-    """(topic, note): ``given`` when the bag has it; else the bag's only topic of ``msgtype`` (not in
-    ``exclude``), with a note saying so; else ``given`` or ``default`` as it is (the caller reports it missing)."""
-    if given and given in topics:
-        return given, ""
+    """(topic, note): ``given`` whenever one is given (a topic the user named is never swapped for another: the
+    caller reports it missing); else ``default`` when the bag has it; else the bag's only topic of ``msgtype``
+    (not in ``exclude``), with a note saying so; else ``default`` (the caller reports it missing)."""
+    if given or default in topics:
+        return given or default, ""
     of_type = [t for t, (kind, _) in sorted(topics.items()) if kind == msgtype and t not in set(exclude)]
-    if len(of_type) == 1 and (given or default) not in topics:
-        wanted = f"{given} is not in the bag" if given else f"no {msgtype.rsplit('/', 1)[-1]} topic named"
-        return of_type[0], f"{wanted}; using its only {msgtype} topic {of_type[0]}"
-    return given or default, ""
+    if len(of_type) == 1:
+        return of_type[0], f"no {default or 'topic'} in the bag: using its only {msgtype} topic {of_type[0]}"
+    return default, ""
 
 
 def describe_topics(topics: dict[str, tuple[str, int]]) -> str:
@@ -118,8 +130,7 @@ def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable
         yield from _merged(path, topic_names, log, strict)
         return
     path = Path(path)
-    if not path.exists():
-        raise BagError(f"bag not found: {path}")
+    check_bag(path)
     log = log if log is not None else storage.ReadLog()
     try:
         for file in storage.bag_files(path):

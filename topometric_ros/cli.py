@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shlex
 import signal
 import sys
@@ -91,9 +92,10 @@ def _monitor_config(args: argparse.Namespace):
 
 def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
     """The topics of a bag replay (``whose``: "the bag's" or "each bag's") and --quiet."""
-    p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": {whose} only one, else /points)")
-    p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": {whose} "
-                                                    "only one besides --gt-topic, else /odom)")
+    p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": /points, else {whose} only one; "
+                                                      "a topic named here is never swapped for another)")
+    p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": /odom, "
+                                                    f"else {whose} only one besides --gt-topic)")
     p.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it "
                                                           "(\"\": none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -132,7 +134,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(format_table(res.windows, res.summary))
     print(f"wrote {Path(args.out) / 'diagnostics.mcap'}, windows.csv, windows.json"
           + ("" if args.no_plot else ", metrics.png"))
-    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
+    return _replay_status(res)
+
+
+def _replay_status(res) -> int:
+    """Exit status of a replay: 1 when it failed, processed no scan or gave no window (the console says why),
+    else 0."""
+    return 1 if res.summary["error"] or res.summary["no_scans"] or not res.windows else 0
 
 
 AUDIT_EXIT = "exit status: 0 every bag replayed, 1 one or more bags failed (named in the report), 2 bad arguments, " \
@@ -161,21 +169,27 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from .inspect import inspect_bag
+    from .cloud import bad_beam_note
+    from .inspect import format_rows, inspect_bag
+    from .pipeline import sensor_model
     from .replay import load_segmenter, network_options
+    from .storage import ReadLog
 
     config = _monitor_config(args)
     segmenter = load_segmenter(config) if config.segmentation.mode == "network" else None
+    log = ReadLog()
     rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, segmenter,
-                       plot=not args.no_plot, progress=not args.quiet)
-    cols = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
+                       plot=not args.no_plot, progress=not args.quiet, log=log)
     print(f"segmentation {config.segmentation.mode}{network_options(config, getattr(segmenter, 'precision', ''))}; "
           f"sensor {config.sensor.model or 'read off each cloud'}")
-    print("  ".join(f"{c:>10s}" for c in cols))
-    for r in rows:
-        print("  ".join(f"{str(r.get(c, '')):>10s}" for c in cols) + (f"  ERROR {r['error']}" if "error" in r else ""))
+    print(format_rows(rows))
+    notes = log.lines() + [bad_beam_note(sum(r.get("bad_beam", 0) for r in rows), sensor_model(config))]
+    for note in filter(None, notes):
+        print(f"note: {note}")
+    if args.limit and len(rows) == args.limit:
+        print(f"the first {len(rows)} clouds (every {args.every}); --limit 0 inspects them all")
     print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_NNNN.png per scan"))
-    return 1 if rows and all("error" in r for r in rows) else 0
+    return 1 if not rows or all("error" in r for r in rows) else 0
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
@@ -230,7 +244,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print()
     print(format_table(res.windows, res.summary))
     print(f"plot: {out / 'replay' / 'metrics.png'}; diagnostics: {out / 'replay' / 'diagnostics.mcap'}")
-    return 1 if res.summary["error"] or res.summary["no_scans"] else 0
+    return _replay_status(res)
 
 
 def _floats(text: str) -> tuple:
@@ -456,9 +470,11 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
     from .config import CHOICES, SegmentationConfig
 
     p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
+    p.add_argument("--version", action="version", version=f"topometric {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
@@ -585,9 +601,9 @@ def build_parser() -> argparse.ArgumentParser:
                                        "segmentation, planes; a PNG per scan and scans.csv")
     i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
     i.add_argument("--out", default="out/inspect", help="output folder")
-    i.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": the bag's only one)")
+    i.add_argument("--points-topic", default="", help="PointCloud2 topic (\"\": /points, else the bag's only one)")
     i.add_argument("--every", type=_positive, default=1, help="every n-th cloud")
-    i.add_argument("--limit", type=_positive, default=10, help="at most this many clouds")
+    i.add_argument("--limit", type=_count, default=10, help="at most this many clouds (0 = all)")
     i.add_argument("--no-plot", action="store_true", help="no scan_NNNN.png")
     i.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_monitor_args(i)
@@ -672,12 +688,28 @@ def _terminated(signum, frame) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+def _check_out(args: argparse.Namespace) -> None:
+    """--out must be a folder, or one that can be made where it is named: ValueError otherwise, before any work
+    starts (nothing is made here)."""
+    out = getattr(args, "out", None)
+    if not out:
+        return
+    path = Path(out).absolute()
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {out} is a file; give a folder")
+    above = next(p for p in path.parents if p.exists())
+    if not path.exists() and not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
+        raise ValueError(f"--out {out}: cannot make a folder in {above}"
+                         + (" (a file)" if not above.is_dir() else " (not writable)"))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.command_line = "topometric " + shlex.join(sys.argv[1:] if argv is None else argv)  # for model cards
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
+        _check_out(args)
         return args.func(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -685,6 +717,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the machine's, not the arguments' (permissions, a full disk): one line, exit 1
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
         from .segmentation.checkpoint import SegmentationError

@@ -173,7 +173,7 @@ CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.dev
 #: and the node alike). Others are unbounded.
 RANGES: dict[str, tuple[float, float]] = {
     # window
-    "window.size": (1, 200), "window.step": (0, 200), "window.pose_wait_s": (0.0, 10.0),
+    "window.size": (2, 200), "window.step": (0, 200), "window.pose_wait_s": (0.0, 10.0),
     "window.max_pose_gap_s": (0.001, 10.0), "window.queue_size": (1, 1000), "window.voxel_size": (0.0, 5.0),
     "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0),
     # sensor
@@ -245,7 +245,8 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
         else:
             changes[key] = _coerce(name, current, value)
             if name in CHOICES and changes[key] not in CHOICES[name]:
-                raise ValueError(f"config key {name!r} must be one of {', '.join(CHOICES[name])}, got {value!r}")
+                choices = ", ".join(c or repr(c) for c in CHOICES[name])  # '' shows as ''
+                raise ValueError(f"config key {name!r} must be one of {choices}, got {value!r}")
             if name in RANGES and not RANGES[name][0] <= changes[key] <= RANGES[name][1]:
                 raise ValueError(f"config key {name!r} = {value!r} is out of range "
                                  f"[{RANGES[name][0]:g}, {RANGES[name][1]:g}]")

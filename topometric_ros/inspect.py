@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import bag, classes as C
+from . import bag, classes as C, storage
 from .cloud import CloudError, read_scan
 from .config import Config
 from .pipeline import segment_scan, sensor_model
@@ -40,16 +40,17 @@ def cloud_topic(path: str | Path, topic: str = "") -> tuple[str, int]:
 
 def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None, topic: str = "",
                 every: int = 1, limit: int = 10, segmenter=None, plot: bool = True,
-                progress: bool = False) -> list[dict]:
-    """Run grid + segmentation + planes on clouds of ``path`` and write OUT/scans.csv and OUT/scan_NNNN.png
-    (``progress``: a progress bar). Returns the CSV rows (one per cloud; a cloud that cannot be read gets its
-    error)."""
+                progress: bool = False, log: storage.ReadLog | None = None) -> list[dict]:
+    """Run grid + segmentation + planes on every ``every``-th cloud of ``path``, at most ``limit`` of them (0:
+    all), and write OUT/scans.csv and OUT/scan_NNNN.png (``progress``: a progress bar). Returns the CSV rows
+    (one per cloud; a cloud that cannot be read gets its error); ``log`` says what of a damaged bag was
+    skipped."""
     from tqdm import tqdm
 
     config = config or Config()
+    topic, count = cloud_topic(path, topic)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    topic, count = cloud_topic(path, topic)
     if segmenter is None and config.segmentation.mode == "network":
         from .pipeline import default_segmenter
 
@@ -57,17 +58,33 @@ def inspect_bag(path: str | Path, out: str | Path, config: Config | None = None,
     model = sensor_model(config)
     rows = []
     every = max(int(every), 1)
-    total = min(limit, -(-count // every))
+    total = -(-count // every) if not limit else min(limit, -(-count // every))
     with tqdm(total=total, desc="inspect", unit="scan", disable=not progress, leave=False) as bar:
-        for k, (_, _, msg) in enumerate(bag.read_messages(path, [topic])):
+        for k, (_, _, msg) in enumerate(bag.read_messages(path, [topic], log)):
             if k % every:
                 continue
-            if len(rows) >= limit:
+            if limit and len(rows) >= limit:
                 break
             rows.append(_inspect_one(k, msg, config, model, segmenter, out if plot else None))
             bar.update()
     write_csv(out / "scans.csv", rows)
     return rows
+
+
+#: The console table's columns (scans.csv has every field).
+TABLE_COLUMNS = ("scan", "layout", "cloud", "points", "dropped", "time_field", "grid", "rows_from", "planes", "ms")
+
+
+def format_rows(rows: list[dict]) -> str:
+    """The console table of inspect_bag's rows: a column each of TABLE_COLUMNS, as wide as its widest entry;
+    a cloud's error last on its line. ms: grid, segmentation and planes of that cloud (the first includes
+    loading the network)."""
+    cells = [[str(r.get(c, "")) for c in TABLE_COLUMNS] for r in rows]
+    widths = [max([len(c)] + [len(line[i]) for line in cells]) for i, c in enumerate(TABLE_COLUMNS)]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(TABLE_COLUMNS, widths))]
+    for r, line in zip(rows, cells):
+        lines.append("  ".join(v.rjust(w) for v, w in zip(line, widths)) + (f"  ERROR {r['error']}" if "error" in r else ""))
+    return "\n".join(lines)
 
 
 def _inspect_one(k: int, msg, config: Config, model, segmenter, out: Path | None) -> dict:
@@ -77,8 +94,8 @@ def _inspect_one(k: int, msg, config: Config, model, segmenter, out: Path | None
     except CloudError as e:
         return {**row, "error": str(e)}
     row.update(layout=scan.layout or "unknown", cloud=f"{msg.height}x{msg.width}", points=len(scan.points),
-               dropped=sum(scan.dropped.values()), time_field="yes" if scan.time is not None else "no",
-               notes="; ".join(scan.notes))
+               dropped=sum(scan.dropped.values()), bad_beam=scan.dropped.get("bad_beam", 0),
+               time_field="yes" if scan.time is not None else "no", notes="; ".join(scan.notes))
     if len(scan.points) == 0:
         return {**row, "error": "no returns"}
     frame = Frame(scan.points, np.eye(4), scan.stamp, scan.labels, scan.beam, scan.intensity, scan.time, scan.columns)

@@ -187,7 +187,7 @@ class MonitorNode(Node):
     def _on_window(self, result, scans) -> None:
         """Worker thread: keep the window's status, publish it now (every window reaches /diagnostics)."""
         latency = self._now() - result.stamps[-1]
-        values = window_values(result, self.monitor.counters, {"extrinsic": self.monitor.extrinsic_source})
+        values = window_values(result, self.monitor.counters, self._sources())
         with self._lock:
             self._last_window = (result.level, result.message, values)
             lat = self._latency
@@ -239,8 +239,13 @@ class MonitorNode(Node):
                 f"points_qos reliable does not match a best-effort driver)")
 
     def _monitor_values(self) -> dict:
-        """The monitor's counters and where its extrinsic comes from, as status values (no window yet)."""
-        return {**{k: str(v) for k, v in self.monitor.counters.items()}, "extrinsic": self.monitor.extrinsic_source}
+        """The monitor's counters, where its extrinsic comes from and its cloud note, as status values (no
+        window yet)."""
+        return {**{k: str(v) for k, v in self.monitor.counters.items()}, **self._sources()}
+
+    def _sources(self) -> dict[str, str]:
+        """Where the extrinsic comes from, and why the last cloud's field was not used ("" none)."""
+        return {"extrinsic": self.monitor.extrinsic_source, "cloud_note": self.monitor.last_note}
 
     def _latency_task(self, stat):
         """The Updater's 'latency': scan stamp -> window result (node clock), worst since the last report."""

@@ -25,6 +25,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from . import bag, geometry, storage
+from .cloud import bad_beam_note
 from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
@@ -155,10 +156,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     config = config or Config()
     opt = options or ReplayOptions()
     speed = _speed(opt.rate)
-    if not Path(bag_path).exists():
-        raise bag.BagError(f"bag not found: {bag_path}")
-    if Path(bag_path).is_dir() and not storage.is_bag_folder(bag_path):
-        raise bag.BagError(f"no rosbag2 bag at {bag_path} (a bag folder has metadata.yaml and .mcap or .db3 files)")
+    bag.check_bag(bag_path)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if segmenter is None and scan_fn is None and config.segmentation.mode == "network":
@@ -193,6 +191,9 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
         _add_rpe(records, rec.poses, np.asarray(feed.gt_stamps), np.stack(feed.gt_poses),
                  monitor.extrinsic if to_sensor is None else to_sensor)
     c = monitor.counters
+    notes += [f"{n} cloud{'s' * (n > 1)}: {note}" for note, n in monitor.cloud_notes.items()]
+    if c["bad_beam_points"]:
+        notes.append(bad_beam_note(c["bad_beam_points"], monitor.model))
     if c["scans_processed"] and not records:
         notes.append(_why_no_window(c, config.window.size, monitor.last_error))
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
@@ -275,8 +276,8 @@ def _why_no_window(counters: dict, size: int, last_error: str) -> str:
     """Why scans were processed but no window came out: too few for window.size, or windows lost (counted)."""
     n = counters["scans_processed"]
     if n < size:
-        return (f"no window: {n} scan{'s' * (n > 1)} processed, fewer than a window of window.size = {size}; "
-                f"replay with --window-size {n} (or a longer bag)")
+        fix = f"replay with --window-size {n} (or a longer bag)" if n >= 2 else "a window needs at least 2 scans"
+        return f"no window: {n} scan{'s' * (n > 1)} processed, fewer than a window of window.size = {size}; {fix}"
     return (f"no window from {n} scans: {counters['windows_discarded']} discarded, {counters['window_errors']} "
             f"failed; last error: {last_error or 'none'}")
 
@@ -452,7 +453,17 @@ def metrics_figure(records: list[dict], truth: dict | None = None, summary: dict
     fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right upper", fontsize=8,
                title="per window", title_fontsize=8)
     fig.suptitle(_plot_title(summary))
+    if not records:
+        fig.text(0.45, 0.5, _no_window_text(summary), ha="center", va="center", fontsize=12, wrap=True,
+                 bbox={"facecolor": "white", "edgecolor": LEVEL_COLOURS["ERROR"]})
     return fig
+
+
+def _no_window_text(summary: dict | None) -> str:
+    """Why the plot is empty, from the summary (no scan processed, or too few for a window)."""
+    s = summary or {}
+    why = s.get("no_scans") or next((n for n in s.get("notes", []) if n.startswith("no window")), "")
+    return "NO WINDOW" + (f"\n{why}" if why else "")
 
 
 def _plot_row(ax, records: list[dict], key: str, label: str, t0: float, truth: dict | None, learning) -> None:
@@ -473,8 +484,9 @@ def _plot_row(ax, records: list[dict], key: str, label: str, t0: float, truth: d
     ax.plot(t, values, "k.-", lw=1, ms=3)
     if key == "rpe_estimate":
         ax.plot(t, [_num(r.get("rpe")) for r in records], ".-", color="#4a7ab0", lw=1, ms=3)
-    for level in ("warn", "error"):
-        ax.plot(t, [_num(r.get(f"{key}_{level}_at")) for r in records], "--", color=LEVEL_COLOURS[level.upper()], lw=1)
+    for level in ("warn", "error"):  # a tick at each window too: one window draws no line
+        ax.plot(t, [_num(r.get(f"{key}_{level}_at")) for r in records], "--", marker="_", ms=10,
+                color=LEVEL_COLOURS[level.upper()], lw=1)
     if key == "cpv" and any(_num(r.get("cpv")) > 0 for r in records):
         ax.set_yscale("log")  # a variance: drift multiplies it
     ax.set_ylabel(label, fontsize=9)

@@ -138,13 +138,24 @@ def bag_files(path: str | Path) -> list[Path]:
 
 def _metadata(folder: Path) -> dict:
     """rosbag2_bagfile_information of metadata.yaml, {} when it is missing or unreadable."""
+    return _read_metadata(folder)[0]
+
+
+def _read_metadata(folder: Path) -> tuple[dict, str]:
+    """(rosbag2_bagfile_information of metadata.yaml or {}, what is wrong with the file: "" nothing)."""
     import yaml
 
+    file = folder / "metadata.yaml"
+    if not file.is_file():
+        return {}, "no metadata.yaml"
     try:
-        doc = yaml.safe_load((folder / "metadata.yaml").read_text())
-        return dict(doc.get("rosbag2_bagfile_information") or {})
-    except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError):
-        return {}
+        doc = yaml.safe_load(file.read_text())
+        info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+        if not isinstance(info, dict) or not info:
+            return {}, "metadata.yaml holds no rosbag2_bagfile_information"
+        return dict(info), ""
+    except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as e:
+        return {}, f"metadata.yaml unreadable ({type(e).__name__})"
 
 
 def storage_of(file: Path) -> str:
@@ -161,8 +172,10 @@ def storage_of(file: Path) -> str:
 def read_raw(path: str | Path, topics: Iterable[str] | None, log: ReadLog) -> Iterator[Raw]:
     """Every readable message of the wanted topics (None: all), file by file, in log-time order per file."""
     wanted = None if topics is None else set(topics)
-    if Path(path).is_dir() and not (Path(path) / "metadata.yaml").is_file():
-        log.note(f"no metadata.yaml in {Path(path).name}: its storage files read directly")
+    if Path(path).is_dir():
+        problem = _read_metadata(Path(path))[1]
+        if problem:
+            log.note(f"{problem} in {Path(path).name}: its storage files read directly")
     for file in bag_files(path):
         if storage_of(file) == "mcap":
             yield from _mcap_messages(file, wanted, log)
