@@ -266,11 +266,15 @@ def test_score_window_widens_the_rate_gate_by_the_distance_its_poses_travelled()
 def test_standard_error_is_zero_for_an_exact_trend_and_matches_the_spread_under_per_scan_pose_noise():
     """Each scan's pose off by its own random shift (σ 2 cm, all its planes move together: a SLAM's scan-to-scan
     jitter) on top of a 0.2 m/s drift, 10 scans at 10 Hz: the translation rate's standard error, which counts
-    each scan as one sample, is about the rates' real spread over 300 draws; an exact trend has none."""
+    each scan as one sample, is about the rates' real spread over 300 draws; an exact trend has none. Two scans
+    fix a trend whatever it is: their standard error is unknown (NaN)."""
     times = np.arange(10) * 0.1
     exact = dr.drift_rates(cpv_mod.coplane_groups(*window((0, 0, 0), (0.2, 0, 0), times=times)),
                            *_rate_inputs(window((0, 0, 0), (0.2, 0, 0), times=times)), times)
     assert exact[1] == pytest.approx(0.2, rel=1e-6) and exact[3] < 1e-6
+    two = dr.drift_rates(cpv_mod.coplane_groups(*window((0, 0, 0), (0.2, 0, 0), times=times[:2])),
+                         *_rate_inputs(window((0, 0, 0), (0.2, 0, 0), times=times[:2])), times[:2])
+    assert two[1] == pytest.approx(0.2, rel=1e-6) and np.isnan(two[2]) and np.isnan(two[3])  # unknown, not 0
     rng = np.random.default_rng(11)
     reads, errors = [], []
     for _ in range(300):

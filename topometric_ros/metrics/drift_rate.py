@@ -133,18 +133,22 @@ def _scan_jackknife_covariance(design, obs, group, weight, scan, seen=None) -> n
     """(P, P) jackknife covariance of the rates over scans, (K−1)/K Σ_s (x_s − x̄)(x_s − x̄)ᵀ, x_s the weighted fit
     again without scan s, with the robust fit's final ``weight`` (one solve per scan). A scan's own pose error
     moves every plane it sees, so its planes are one sample, not many; under per-scan pose noise this matches
-    the rates' real spread (test_drift_rate). Zero with fewer than three scans."""
+    the rates' real spread (test_drift_rate). NaN with fewer than three scans: two scans fix a trend exactly and
+    leave no spread to measure (zero would claim certainty)."""
     used = np.unique(scan[weight > 0])
     p = design.shape[2]
     if len(used) < 3:
-        return np.zeros((p, p))
+        return np.full((p, p), np.nan)
     xs = np.stack([_weighted_fit(design, obs, group, np.where(scan == s, 0.0, weight), seen) for s in used])
     d = xs - xs.mean(axis=0)
     return d.T @ d * (len(used) - 1) / len(used)
 
 
 def _norm_se(v: np.ndarray, cov: np.ndarray) -> float:
-    """Standard error of |v| from v's covariance (first order along v; the largest spread when v = 0)."""
+    """Standard error of |v| from v's covariance (first order along v; the largest spread when v = 0); NaN for
+    an unknown covariance."""
+    if np.isnan(cov).any():
+        return float("nan")
     length = np.linalg.norm(v)
     if length > 0:
         u = v / length
