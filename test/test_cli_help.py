@@ -104,3 +104,15 @@ def test_an_output_that_is_a_file_or_a_bag_that_is_none_is_a_one_line_error(tmp_
 
     res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "--version"], capture_output=True, text=True)
     assert res.returncode == 0 and res.stdout.strip() == f"topometric {__version__}"
+
+
+def test_an_unknown_option_is_refused_by_its_subcommand_with_the_closest_known_ones():
+    """A misspelt option of a subcommand: exit 2 with that subcommand's usage (not the top level's) and the
+    options it may have meant."""
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "replay", "bag", "--out", "o", "--windowsize",
+                          "3"], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.startswith("usage: topometric replay"), res.stderr
+    assert "error: unrecognized arguments: --windowsize 3 (did you mean --window-size?)" in res.stderr
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "inspect", "bag", "--topic", "/x"],
+                         capture_output=True, text=True)
+    assert res.returncode == 2 and "usage: topometric inspect" in res.stderr and "(did you mean --points-topic?)" in res.stderr

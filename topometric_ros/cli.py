@@ -468,6 +468,22 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, but an unknown option is refused by its subcommand (its usage, not the top level's),
+        naming the closest known options."""
+        import difflib
+
+        parsed, extra = self.parse_known_args(args, namespace)
+        if extra:
+            sub = next(a for a in self._actions if isinstance(a, argparse._SubParsersAction))
+            command = sub.choices[parsed.command]
+            known = [o for a in command._actions for o in a.option_strings]
+            close = [m for e in extra if e.startswith("-")
+                     for m in difflib.get_close_matches(e.split("=", 1)[0], known, n=3, cutoff=0.6)]
+            command.error(f"unrecognized arguments: {' '.join(extra)}"
+                          + (f" (did you mean {' or '.join(dict.fromkeys(close))}?)" if close else ""))
+        return parsed
+
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
