@@ -2,6 +2,7 @@
 bag, a killed worker, the cache, the fleet report in a real headless Chromium, a two-node Ray cluster."""
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -80,6 +81,28 @@ def test_ray_audit_equals_single_replays_and_names_the_corrupt_bag(fleet, tmp_pa
     assert csv_lines[0].split(",") == list(COLUMNS) and len(csv_lines) == 6
 
 
+def test_a_bag_with_no_window_fails_and_a_damaged_one_that_gives_windows_is_noted(fleet, tmp_path, capsys):
+    """As replay's exit status: a bag too short for one window is a failed bag with replay's reason; a bag cut
+    short that still gives windows is ok, and its damage is on the console, in fleet.csv and index.html."""
+    bags = tmp_path / "bags"
+    simulate(SimConfig(scene="office1", frames=3, rate=5.0, seed=7), bags / "short", progress=False)
+    shutil.copytree(fleet / "night_2", bags / "cut")
+    (mcap,) = (bags / "cut").glob("*.mcap")
+    mcap.write_bytes(mcap.read_bytes()[:int(mcap.stat().st_size * 0.75)])
+    out = tmp_path / "audit"
+    assert main(["audit", str(bags), "--out", str(out), "--engine", "local", "--quiet", *LABELS]) == 1
+    printed = capsys.readouterr().out
+    assert "audit: 2 bags: 1 done, 0 cached, 1 failed" in printed
+    assert ("FAILED short: no window: 3 scans processed, fewer than a window of window.size = 5; replay with "
+            "--window-size 3") in printed
+    assert "  note cut: damaged bag: " in printed
+    rows = {r["bag"]: r for r in json.loads((out / "fleet.json").read_text())["bags"]}
+    assert rows["cut"]["status"] == "ok" and rows["cut"]["windows"] >= 1
+    with open(out / "fleet.csv") as f:
+        cut = next(r for r in csv.DictReader(f) if r["bag"] == "cut")
+    assert "damaged bag: " in cut["notes"] and "damaged bag: " in (out / "index.html").read_text()
+
+
 def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_path):
     bags = find_bags([str(fleet)])
     assert [b.name for b in bags] == ["night_0", "night_1", "night_2", "night_3", "night_corrupt"]
@@ -89,10 +112,14 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
         find_bags([str(tmp_path)])  # the audit's own output (bags/*/diagnostics.mcap) is not a fleet
     with pytest.raises(FileNotFoundError, match="no rosbag2 bag at"):
         find_bags([str(fleet / "night_0" / "truth.json")])
+    replayed = tmp_path / "replayed"  # a replay's reports (diagnostics.mcap beside windows.json) are no bag either
+    replay(bags[0], replayed, config, ReplayOptions(progress=False, plot=False))
+    with pytest.raises(FileNotFoundError, match="no rosbag2 bag under"):
+        find_bags([str(replayed)])
     assert (first.summary["ran"], first.summary["done"], first.summary["failed"]) == (5, 4, 1)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")}
     again = audit(bags, tmp_path, config, engine="local", progress=False)
-    assert (again.summary["ran"], again.summary["cached"], again.summary["failed"]) == (0, 5, 1)
+    assert (again.summary["ran"], again.summary["cached"], again.summary["failed"]) == (0, 4, 1)  # they add up
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")} == stamps  # nothing rewritten
     assert [r["cached"] for r in again.rows] == [True] * 5
     assert [r["status"] for r in again.rows] == [r["status"] for r in first.rows]

@@ -21,6 +21,25 @@ def test_the_clock_watch_flags_a_jump_either_way_and_only_a_jump():
     assert ClockWatch(0.5).cloud(5.0, None) == ""  # no receive times: nothing to compare
 
 
+def test_a_clock_step_that_stays_becomes_the_odometry_clock_and_clouds_are_judged_against_it():
+    """The robot's clock steps 1000 s (both streams' stamps, not their receive times): RELEARN odometry
+    messages are faults, then the new offset is the stream's clock, and clouds on it fit again. A cloud
+    stream left on the old clock stays a fault (it cannot be paired); a short burst of odometry faults never
+    moves the clock."""
+    w = ClockWatch(0.5)
+    t = 100.0
+    for k in range(10):
+        assert w.odometry(t + 0.05 * k, t + 0.05 * k) == "" and w.cloud(t + 0.05 * k - 0.1, t + 0.05 * k) == ""
+    for k in range(3):  # a burst: faults, and the clock stays
+        assert "jumped +5.00 s" in w.odometry(105.5 + 0.05 * k, 100.5 + 0.05 * k)
+    assert w.odometry(100.7, 100.7) == ""
+    results = [w.odometry(1100.8 + 0.05 * k, 100.8 + 0.05 * k) for k in range(ClockWatch.RELEARN + 5)]
+    assert all("jumped +1000.00 s" in r for r in results[:ClockWatch.RELEARN - 1]), results
+    assert results[ClockWatch.RELEARN - 1:] == [""] * 6
+    assert w.cloud(1102.0 - 0.1, 102.0) == ""  # a cloud on the stepped clock fits
+    assert "cloud stamps jumped -1000.00 s" in w.cloud(102.1 - 0.1, 102.1)  # one left on the old clock does not
+
+
 @pytest.mark.parametrize("offset", [1.0, -1.0, 5.0])
 def test_a_cloud_clock_jump_is_a_clock_fault_within_two_windows_and_no_drift_alarm(tmp_path, offset):
     from topometric_ros.replay import ReplayOptions, replay

@@ -493,3 +493,18 @@ def test_an_internal_error_after_scoring_is_counted_and_the_live_threads_go_on()
     m.close()
     assert m.counters["scans_processed"] == 9 and m.counters["scan_errors"] == 3
     assert "internal error: AttributeError" in m.last_error
+
+
+@pytest.mark.parametrize("model", ["", "OS1-128", "Mid-360"])
+def test_warm_up_runs_its_synthetic_scans_to_a_scored_window(model):
+    """The node's warm-up (compiled kernels, the network's export for the sensor's image shape) runs the
+    whole pipeline: its three box-room scans of the named model (or a VLP-32C; the Mid-360 without rings)
+    score windows, in the default mode (network segmentation) and without segmentation."""
+    from topometric_ros.monitor import warm_up
+    from topometric_ros.replay import load_segmenter
+
+    for mode in ("none", "network"):
+        cfg = load_config(overrides={"sensor.model": model, "segmentation.mode": mode})
+        segmenter = load_segmenter(cfg) if mode == "network" else None
+        seconds, windows = warm_up(cfg, segmenter)
+        assert windows >= 1 and seconds > 0, (model, mode)

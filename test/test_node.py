@@ -558,6 +558,25 @@ def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
         assert got, [s.message for _, _, s in statuses(listener)][-3:]
         message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
         assert message.startswith("no scans yet") and "socket buffers, docs/ros.md" in message, message
+        # a cloud comes through, then none: the publisher stopped, not a transport that never delivered
+        import array
+        from types import SimpleNamespace
+
+        from builtin_interfaces.msg import Time
+        from sensor_msgs.msg import PointField
+        from std_msgs.msg import Header
+
+        from topometric_ros.cloud import make_cloud
+
+        types = SimpleNamespace(PointCloud2=PointCloud2, PointField=PointField, Header=Header, Time=Time)
+        pts = np.random.default_rng(0).uniform(-5, 5, (500, 3)).astype(np.float32)
+        cloud = make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, time.time(), "lidar", types,
+                           data=lambda d: array.array("B", d.tobytes()))
+        listener.node.create_publisher(PointCloud2, "/quiet_points", qos_profile_sensor_data).publish(cloud)
+        got = listener.wait_for("/diagnostics", stale("which sent clouds before: has the driver stopped"), 30, node)
+        assert got, [s.message for _, _, s in statuses(listener)][-3:]
+        message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
+        assert message.startswith("no scans for") and "socket buffers" not in message, message
     finally:
         node.stop()
         listener.close()
@@ -623,6 +642,22 @@ def test_a_command_line_parameter_out_of_range_is_refused_too(ros_env, tmp_path)
     assert code == 2 and "health.warn_sigma" in node.log()
 
 
+def test_a_plain_yaml_given_as_a_parameter_file_is_refused_with_how_one_looks(ros_env, tmp_path):
+    """replay's --config takes a plain YAML; the node's --params-file needs the ROS 2 form: exit 2 and a line
+    saying so (rcl's parser fails inside rclpy.init), not a traceback."""
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("window:\n  size: 3\n")
+    node = Proc([sys.executable, "-m", "topometric_ros.node", "--ros-args", "--params-file", str(plain)], tmp_path,
+                "plain")
+    try:
+        code = node.popen.wait(60)
+    finally:
+        node.stop()
+    log = node.log()
+    assert code == 2 and "Traceback" not in log, (code, log[-2000:])
+    assert "cannot start: " in log and "Couldn't parse params file" in log and "ros__parameters:" in log, log
+
+
 # -------------------------------------------------------------------- ros2 launch and the aggregator
 @pytest.fixture(scope="module")
 def ament_prefix(tmp_path_factory):
@@ -650,8 +685,10 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
     points_topic:=/launch_points: the node subscribes to /launch_points (not the file's), keeps the file's
     odom topic, window.size 7 holds under the namespace ('/**'), and the real diagnostic_aggregator
     (config/analyzers.yaml) shows our status under its SLAM/Map consistency path on /diagnostics_agg."""
-    from diagnostic_msgs.msg import DiagnosticArray
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from rcl_interfaces.srv import GetParameters
+
+    STALE_LEVEL = DiagnosticStatus.STALE
 
     yaml_file = write_params(tmp_path / "mine.yaml", {**BASE, "points_topic": "/yaml_points",
                                                       "odom_topic": "/yaml_odom", "window.size": 7})
@@ -666,6 +703,11 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
         assert agg is not None, launch.log()[-3000:]
         names = sorted(s.name for s in agg[1].status)
         assert any(n.endswith(CONSISTENCY) or n.endswith("map consistency") for n in names), names
+        # the group counts our four statuses (num_items): not "Expected 3, found 4" (ERROR) once they are in
+        group = listener.wait_for("/diagnostics_agg", lambda a: any(
+            s.name == "/Aggregation/SLAM/Map consistency" and "xpected" not in s.message and s.level != STALE_LEVEL
+            for s in a.status), 20, launch)
+        assert group is not None, [(s.name, s.message) for s in agg[1].status]
         end = time.monotonic() + 10  # the aggregator's status can arrive before discovery shows our endpoints
         while not listener.node.get_subscriptions_info_by_topic("/launch_points") and time.monotonic() < end:
             time.sleep(0.1)

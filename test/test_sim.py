@@ -199,3 +199,16 @@ def test_follow_heading_limits_the_rate_and_reaches_the_target():
     got = follow_heading(wanted, 0.01, max_rate_deg=90.0, smooth_s=0.0)
     assert np.degrees(np.abs(np.diff(got))).max() == pytest.approx(0.9)  # 90 deg/s at 100 Hz
     assert got[100 + 199] == pytest.approx(np.pi, abs=1e-9) and got[100 + 198] < np.pi  # 2 s for 180 deg
+
+
+def test_a_drift_bag_too_short_for_an_episode_says_so(tmp_path):
+    """Episodes start after 20 s: a 4 s bag asked for episode drift has none, and its summary says so (and
+    what to do); a bag without drift, or with drift noise, says nothing of the kind."""
+    from topometric_ros.sim.writer import SimConfig, format_summary, simulate
+
+    short = simulate(SimConfig(scene="office1", frames=20, rate=5.0, drift=DriftSpec.parse("rt:1.5")),
+                     tmp_path / "short", progress=False)
+    assert short["episodes"] == [] and "NO EPISODE FITS" in format_summary(short)
+    noise = simulate(SimConfig(scene="office1", frames=20, rate=5.0, drift=DriftSpec.parse("rt:1.5", "noise")),
+                     tmp_path / "noise", progress=False)
+    assert "NO EPISODE FITS" not in format_summary(noise)

@@ -33,7 +33,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -49,7 +49,7 @@ _RANK = {"OK": 0, "WARN": 1, "ERROR": 2}
 #: the columns of fleet.csv / index.html, in order
 COLUMNS = ("bag", "status", "reason", "duration_s", "scans", "windows", "ok", "warn", "error", "worst_level",
            "worst_time_s", "worst_reason", "rot_rate_p50", "rot_rate_p99", "trans_rate_p50", "trans_rate_p99",
-           "episodes_alarmed", "wall_s", "cached", "path", "metrics_png")
+           "episodes_alarmed", "notes", "wall_s", "cached", "worker", "path", "metrics_png")
 #: config leaves that cannot change a window's result (left out of the config digest)
 NOT_IN_KEY = ("segmentation.weights", "window.pipelined")
 
@@ -58,6 +58,8 @@ NOT_IN_KEY = ("segmentation.weights", "window.pipelined")
 def _is_bag(p: Path) -> bool:
     if (p / MANIFEST).is_file() or (p.parent / MANIFEST).is_file():
         return False  # an audit's own output (its diagnostics.mcap), not a bag
+    if (p / "windows.json").is_file() or (p.parent / "windows.json").is_file():
+        return False  # a replay's reports (its diagnostics.mcap beside windows.json), not a bag
     if p.is_file():
         return p.suffix in (".mcap", ".db3")
     return is_bag_folder(p)
@@ -257,7 +259,9 @@ def worst_window(records: list[dict]) -> dict | None:
 def fleet_row(task: BagTask, records: list[dict], summary: dict) -> dict:
     """One bag's line of the fleet report (see COLUMNS) from its replay."""
     levels = [r["level"] for r in records]
-    failed = summary.get("error") or summary.get("no_scans") or ""
+    no_window = "" if records else next((n for n in summary.get("notes", []) if n.startswith("no window")),
+                                        "no window")
+    failed = summary.get("error") or summary.get("no_scans") or no_window  # as replay's exit status 1
     damage = [n for n in summary.get("notes", []) if n.startswith("damaged bag")]
     if failed and damage:
         failed += f" ({damage[-1]})"
@@ -372,8 +376,9 @@ def audit(bags: list[str | Path], out: str | Path, config: Config | None = None,
                                              desc="audit", progress=progress, shared=shared):
         rows[task.name] = _store(out, task, result, error)
     ordered = [rows[n] for n in bag_names(paths)]
-    summary = {"bags": len(ordered), "ran": len(tasks), "cached": len(cached),
+    summary = {"bags": len(ordered), "ran": len(tasks),  # done + cached + failed = bags
                "done": sum(1 for r in ordered if r["status"] == "ok" and not r.get("cached")),
+               "cached": sum(1 for r in ordered if r["status"] == "ok" and r.get("cached")),
                "failed": sum(1 for r in ordered if r["status"] == "failed"),
                "engine": engine, "workers": workers if engine == "ray" and not address else None,
                "address": address or None, "wall_s": round(time.perf_counter() - started, 3),
@@ -389,7 +394,7 @@ def write_report(out: Path, rows: list[dict], summary: dict, config: Config | No
     """OUT/fleet.csv, OUT/fleet.json and OUT/index.html."""
     from .reports import csv_value
 
-    write_csv(out / "fleet.csv", [{c: csv_value(r.get(c, "")) if r.get(c) is not None else "" for c in COLUMNS}
+    write_csv(out / "fleet.csv", [{c: csv_value(_text(r.get(c))) if r.get(c) is not None else "" for c in COLUMNS}
                                   for r in rows])
     failed = [{"bag": r["bag"], "path": r.get("path"), "reason": r.get("reason")} for r in rows
               if r["status"] == "failed"]
@@ -401,19 +406,28 @@ def write_report(out: Path, rows: list[dict], summary: dict, config: Config | No
 LEVEL_CSS = {"OK": "#2e8b57", "WARN": "#f0a030", "ERROR": "#d03020", "failed": "#7a1010"}
 
 
+def _text(v: Any) -> Any:
+    """A report cell: a list (a bag's notes) as one '; '-joined text, anything else as it is."""
+    return "; ".join(map(str, v)) if isinstance(v, list) else v
+
+
 def _cell(row: dict, col: str) -> str:
-    v = row.get(col)
+    v = _text(row.get(col))
     if v is None or v == "":
         return '<td data-v=""></td>'
-    if col == "bag" and row.get("metrics_png"):
-        return f'<td class="name" data-v="{html.escape(str(v))}"><a href="{html.escape(row["metrics_png"])}">{html.escape(str(v))}</a></td>'
+    if col == "bag":  # its path on hover (bags of one name from two robots are told apart), its plot on click
+        title = html.escape(str(row.get("path") or ""))
+        if row.get("metrics_png"):
+            return (f'<td class="name" data-v="{html.escape(str(v))}" title="{title}"><a href='
+                    f'"{html.escape(row["metrics_png"])}">{html.escape(str(v))}</a></td>')
+        return f'<td class="name" data-v="{html.escape(str(v))}" title="{title}">{html.escape(str(v))}</td>'
     if isinstance(v, bool):
         text = "yes" if v else "no"
     elif isinstance(v, float):
         text = f"{v:.4g}"
     else:
         text = str(v)
-    cls = ' class="txt"' if col in ("reason", "worst_reason") else ""
+    cls = ' class="txt"' if col in ("reason", "worst_reason", "notes") else ""
     if col in ("worst_level", "status") and v in LEVEL_CSS:
         cls = f' class="lv-{v}"'
     return f'<td data-v="{html.escape(str(v))}"{cls}>{html.escape(text)}</td>'
@@ -423,7 +437,7 @@ def render_html(rows: list[dict], summary: dict) -> str:
     """index.html: one self-contained page (inline CSS and JS, no network): the fleet table, sortable by
     clicking a header (numbers as numbers), level colours, each bag linking its metrics.png; failed bags
     with their reason."""
-    cols = [c for c in COLUMNS if c not in ("path", "metrics_png")]
+    cols = [c for c in COLUMNS if c not in ("path", "metrics_png", "worker")]
     head = "".join(f'<th onclick="sortBy({i})" title="sort">{html.escape(c)}</th>' for i, c in enumerate(cols))
     body = "\n".join(f'<tr class="st-{html.escape(r["status"])}">' + "".join(_cell(r, c) for c in cols) + "</tr>"
                      for r in rows)
@@ -485,5 +499,7 @@ def format_summary(res: AuditResult) -> str:
              + (f", {s['workers']} workers" if s.get("workers") else "")
              + (f", cluster {s['address']}" if s.get("address") else "") + ")"]
     lines += [f"  FAILED {r['bag']}: {r.get('reason')}" for r in res.rows if r["status"] == "failed"]
+    lines += [f"  note {r['bag']}: {n}" for r in res.rows if r["status"] == "ok"
+              for n in r.get("notes", []) if n.startswith("damaged bag")]
     lines.append(f"report: {res.out / 'index.html'}, {res.out / 'fleet.csv'}, {res.out / 'fleet.json'}")
     return "\n".join(lines)

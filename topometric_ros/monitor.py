@@ -78,23 +78,38 @@ class ClockWatch:
     resync, a wrong time source) by seconds. A cloud whose offset, taken against the odometry's recent median,
     leaves its own baseline (the median of the last accepted clouds) by ``jump_s`` or more is a clock fault,
     and so is an odometry message whose offset leaves the odometry's median. Without receive times there is
-    nothing to compare and nothing is flagged."""
+    nothing to compare and nothing is flagged.
+
+    A clock that stays stepped (a PTP or NTP step of the robot's clock, a SLAM restarted on another time base)
+    is the odometry's clock from then on: RELEARN odometry messages in a row on one new offset (within
+    ``jump_s`` of each other) replace its median. Clouds are then judged against the new clock: when they
+    stepped with it they fit again, when they did not they stay clock faults (they cannot be paired)."""
 
     HISTORY = 25  # messages per stream in the medians
+    RELEARN = 20  # odometry messages in a row on one new clock before it is the stream's clock (0.2-1 s)
 
     def __init__(self, jump_s: float):
         self.jump_s = float(jump_s)
         self._odom: deque = deque(maxlen=self.HISTORY)
         self._cloud: deque = deque(maxlen=self.HISTORY)
+        self._stepped: deque = deque(maxlen=self.RELEARN)  # offsets of the odometry faults in a row
 
     def odometry(self, stamp: float, received: float | None) -> str:
-        """'' when the odometry message fits its stream's clock, else the fault."""
+        """'' when the odometry message fits its stream's clock (or RELEARN faults in a row made a new one),
+        else the fault."""
         if received is None or self.jump_s <= 0:
             return ""
         offset = stamp - received
         if len(self._odom) >= 3 and abs(offset - np.median(self._odom)) >= self.jump_s:
-            return f"clock fault: odometry stamps jumped {offset - np.median(self._odom):+.2f} s against their receive times"
-        self._odom.append(offset)
+            self._stepped.append(offset)
+            if len(self._stepped) < self.RELEARN or np.ptp(self._stepped) >= self.jump_s:
+                return (f"clock fault: odometry stamps jumped {offset - np.median(self._odom):+.2f} s against their "
+                        "receive times")
+            self._odom.clear()  # the step stayed: the stream's clock from now on
+            self._odom.extend(self._stepped)
+        else:
+            self._odom.append(offset)
+        self._stepped.clear()
         return ""
 
     def cloud(self, stamp: float, received: float | None) -> str:
@@ -695,3 +710,54 @@ class Monitor:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def warm_up(config: Config, segmenter: Any = None) -> tuple[float, int]:
+    """Run three synthetic scans of a box room through a Monitor of ``config`` (windows of 2 scans), so that
+    the compiled kernels (numba compiles them on the first start after an install, then loads them from its
+    cache) and the network's export for the image shape of sensor.model (else a VLP-32C) are ready before
+    live data arrives. Returns (seconds it took, windows scored)."""
+    from dataclasses import replace
+
+    from . import bag, cloud, pipeline, sensors
+
+    start = time.perf_counter()
+    model = pipeline.sensor_model(config) or sensors.sensor("VLP-32C")
+    types = cloud.rosbags_types(bag.typestore())
+    small = replace(config, window=replace(config.window, size=2, step=0))
+    monitor = Monitor(small, segmenter=segmenter)
+    try:
+        for k in range(7):  # odometry every 0.05 s, the sensor creeping along x
+            monitor.add_odometry(bag.make_odometry(0.05 * k, geometry.make_pose(np.eye(3), [0.01 * k, 0, 0])))
+        for k in range(3):
+            monitor.add_cloud(cloud.make_cloud(_box_room(model), 0.1 * k, "warm_up", types))
+        monitor.flush()
+    finally:
+        monitor.close()
+    return time.perf_counter() - start, monitor.counters["windows"]
+
+
+def _box_room(model) -> dict[str, np.ndarray]:
+    """Fields (x y z intensity ring time) of one sweep of ``model`` (sensors.SensorModel) in a 12 x 10 x 3 m
+    box room, the sensor 1.2 m above its floor (sensor frame, m); a non-repetitive pattern: 20,000 rays
+    spread over its field of view, no ring."""
+    rng = np.random.default_rng(0)
+    if model.pattern == "non_repetitive":
+        n = model.points_per_scan or 20_000
+        el = np.radians(rng.uniform(*model.fov_deg, n))
+        az = rng.uniform(-np.pi, np.pi, n)
+        ring = None
+    else:
+        el, az = np.meshgrid(np.radians(model.elevation_deg), np.linspace(-np.pi, np.pi, model.columns, endpoint=False))
+        el, az = el.ravel(), az.ravel()
+        ring = np.tile(np.arange(len(model.elevation_deg)), model.columns).astype(np.uint16)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+    walls = np.array([6.0, 5.0, 1.8]), np.array([-6.0, -5.0, -1.2])  # upper and lower bounds per axis
+    with np.errstate(divide="ignore"):
+        reach = np.where(d > 0, walls[0] / d, np.where(d < 0, walls[1] / d, np.inf)).min(axis=1)
+    pts = (d * reach[:, None]).astype(np.float32)
+    fields = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": np.full(len(pts), 50, np.float32),
+              "time": ((az + np.pi) / (2 * np.pi) * model.period_s).astype(np.float32)}
+    if ring is not None:
+        fields["ring"] = ring
+    return fields

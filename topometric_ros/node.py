@@ -35,6 +35,7 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
@@ -45,7 +46,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from . import config as config_module
 from . import bag, geometry, parameters
 from .health import NODE_NAME, TASK, window_values
-from .monitor import Monitor
+from .monitor import Monitor, warm_up
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
@@ -119,7 +120,13 @@ class MonitorNode(Node):
         from .replay import load_segmenter, network_options
 
         segmenter = load_segmenter(self.config) if self.config.segmentation.mode == "network" else None
-        from .segmentation import infer  # noqa: F401 - import torch now, not when the first scan arrives (~1 s)
+        self.get_logger().info("warming up: the pipeline's compiled kernels (the first start after an install "
+                               "compiles them: a minute or two on a small CPU; later starts load them)")
+        try:
+            seconds, _ = warm_up(self.config, segmenter)
+            self.get_logger().info(f"warm in {seconds:.1f} s")
+        except Exception as e:  # noqa: BLE001 - live data will compile what it needs; the node still runs
+            self.get_logger().warning(f"warm-up failed ({type(e).__name__}: {e}); the first scans compile instead")
         self.p = p
         self._lock = threading.Lock()
         self._last_window = None  # (level, message, values) of the newest window
@@ -143,7 +150,8 @@ class MonitorNode(Node):
         self.create_timer(CHECK_PERIOD_S, self._on_check)
         self.get_logger().info(
             f"monitoring {self.resolve_topic_name(p['points_topic'])} + {self.resolve_topic_name(p['odom_topic'])}: "
-            f"window {self.config.window.size} scans, segmentation {self.config.segmentation.mode}"
+            f"window {self.config.window.size} scans, sensor {self.config.sensor.model or 'read off each cloud'}, "
+            f"segmentation {self.config.segmentation.mode}"
             f"{network_options(self.config, getattr(segmenter, 'precision', ''))}, "
             f"diagnostics on /diagnostics as '{self.updater.node_name}: {TASK}'")
 
@@ -227,14 +235,18 @@ class MonitorNode(Node):
         return stat
 
     def _lost_clouds_hint(self, checked: tuple[str, str]) -> str:
-        """For a STALE without clouds while the cloud topic has publishers: where the clouds may be lost."""
+        """For a STALE without clouds: whether the cloud topic has publishers, and where clouds that never
+        arrived may be lost (after clouds did arrive, that the publisher stopped)."""
         if checked[0] != "STALE" or "no scans" not in checked[1]:
             return ""
         topic = self.resolve_topic_name(self.p["points_topic"])
         publishers = self.count_publishers(topic)
         if not publishers:
             return f" ({topic} has no publisher)"
-        return (f" ({topic} has {publishers} publisher{'s' * (publishers > 1)}: if it publishes, its clouds are lost "
+        some = f"{topic} has {publishers} publisher{'s' * (publishers > 1)}"
+        if self.monitor.last_scan_received is not None:  # clouds came through before: not a transport problem
+            return f" ({some}, which sent clouds before: has the driver stopped publishing?)"
+        return (f" ({some}: if it publishes, its clouds are lost "
                 f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md; "
                 f"points_qos reliable does not match a best-effort driver)")
 
@@ -296,7 +308,12 @@ class MonitorNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except _rclpy.RCLError as e:  # e.g. a params file that is no ROS 2 parameter file
+        print(f"{NODE_NAME}: cannot start: {str(e).split(', at /')[0]} (a ROS 2 parameter file has `/**:` or the "
+              "node name, then `ros__parameters:`, as config/topometric.yaml; docs/ros.md)", file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:

@@ -80,7 +80,8 @@ def check(name: str, value: Any) -> None:
     if isinstance(value, bool) and {"on", "off"} <= set(choices):
         value = "on" if value else "off"  # a bare on / off in YAML (rcl reads it as a boolean too)
     if name in ALL_CHOICES and value not in choices:
-        raise ValueError(f"parameter {name!r} = {value!r} must be one of: {', '.join(ALL_CHOICES[name])}")
+        raise ValueError(f"parameter {name!r} = {value!r} must be one of: "
+                         f"{', '.join(c or repr(c) for c in ALL_CHOICES[name])}")  # '' shows as ''
 
 
 def check_known(given: list[str] | set[str], declared: set[str]) -> None:

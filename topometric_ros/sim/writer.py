@@ -238,5 +238,9 @@ def format_summary(s: dict) -> str:
              f"({s['config']['drift']['kind']}), {len(s['episodes'])} episode(s)"]
     lines += [f"  episode {i}: {e['start'] - START_TIME:7.1f} s .. {e['end'] - START_TIME:7.1f} s"
               for i, e in enumerate(s["episodes"])]
+    drift = s["config"]["drift"]
+    if drift["mode"] != "none" and drift["kind"] == "episodes" and not s["episodes"]:
+        lines.append("  NO EPISODE FITS: episodes start after 20 s and last 6-10 s; give more --frames, or "
+                     "--drift-kind noise (drift from the first scan)")
     lines.append(f"elapsed        {s['elapsed_s']:.1f} s")
     return "\n".join(lines)
