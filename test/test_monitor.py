@@ -499,11 +499,11 @@ def test_an_internal_error_after_scoring_is_counted_and_the_live_threads_go_on()
 def test_warm_up_runs_its_synthetic_scans_to_a_scored_window(model):
     """The node's warm-up (compiled kernels, the network's export for the sensor's image shape) runs the
     whole pipeline: its three box-room scans of the named model (or a VLP-32C; the Mid-360 without rings)
-    score windows, in the default mode (network segmentation) and without segmentation."""
+    score windows, in the default mode (network segmentation), on the clouds' labels and without segmentation."""
     from topometric_ros.monitor import warm_up
     from topometric_ros.replay import load_segmenter
 
-    for mode in ("none", "network"):
+    for mode in ("none", "labels", "network"):
         cfg = load_config(overrides={"sensor.model": model, "segmentation.mode": mode})
         segmenter = load_segmenter(cfg) if mode == "network" else None
         seconds, windows = warm_up(cfg, segmenter)

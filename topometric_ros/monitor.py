@@ -738,9 +738,11 @@ def warm_up(config: Config, segmenter: Any = None) -> tuple[float, int]:
 
 
 def _box_room(model) -> dict[str, np.ndarray]:
-    """Fields (x y z intensity ring time) of one sweep of ``model`` (sensors.SensorModel) in a 12 x 10 x 3 m
-    box room, the sensor 1.2 m above its floor (sensor frame, m); a non-repetitive pattern: 20,000 rays
-    spread over its field of view, no ring."""
+    """Fields (x y z intensity ring time label) of one sweep of ``model`` (sensors.SensorModel) in a 12 x 10 x
+    3 m box room, the sensor 1.2 m above its floor (sensor frame, m; labels floor, wall, ceiling for
+    segmentation.mode labels); a non-repetitive pattern: 20,000 rays spread over its field of view, no ring."""
+    from . import classes as C
+
     rng = np.random.default_rng(0)
     if model.pattern == "non_repetitive":
         n = model.points_per_scan or 20_000
@@ -754,10 +756,12 @@ def _box_room(model) -> dict[str, np.ndarray]:
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
     walls = np.array([6.0, 5.0, 1.8]), np.array([-6.0, -5.0, -1.2])  # upper and lower bounds per axis
     with np.errstate(divide="ignore"):
-        reach = np.where(d > 0, walls[0] / d, np.where(d < 0, walls[1] / d, np.inf)).min(axis=1)
+        hits = np.where(d > 0, walls[0] / d, np.where(d < 0, walls[1] / d, np.inf))
+    reach, side = hits.min(axis=1), hits.argmin(axis=1)  # side 2: floor or ceiling
     pts = (d * reach[:, None]).astype(np.float32)
+    label = np.where(side < 2, C.WALL, np.where(d[:, 2] > 0, C.CEILING, C.FLOOR)).astype(np.uint8)
     fields = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": np.full(len(pts), 50, np.float32),
-              "time": ((az + np.pi) / (2 * np.pi) * model.period_s).astype(np.float32)}
+              "time": ((az + np.pi) / (2 * np.pi) * model.period_s).astype(np.float32), "label": label}
     if ring is not None:
         fields["ring"] = ring
     return fields
