@@ -572,7 +572,12 @@ def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
         pts = np.random.default_rng(0).uniform(-5, 5, (500, 3)).astype(np.float32)
         cloud = make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, time.time(), "lidar", types,
                            data=lambda d: array.array("B", d.tobytes()))
-        listener.node.create_publisher(PointCloud2, "/quiet_points", qos_profile_sensor_data).publish(cloud)
+        publisher = listener.node.create_publisher(PointCloud2, "/quiet_points", qos_profile_sensor_data)
+        end = time.monotonic() + 20  # best effort, and discovery takes a moment: until the node counts one
+        while time.monotonic() < end and not listener.wait_for("/diagnostics", lambda a: any(
+                s.name == CONSISTENCY and int(values(s).get("scans_in", "0")) > 0 for s in a.status), 0.2, node):
+            cloud.header.stamp.sec = int(time.time())
+            publisher.publish(cloud)
         got = listener.wait_for("/diagnostics", stale("which sent clouds before: has the driver stopped"), 30, node)
         assert got, [s.message for _, _, s in statuses(listener)][-3:]
         message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
