@@ -61,6 +61,9 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["eval-seg", "bag", "--every", "x"], "argument --every: expected a whole number >= 1"),
                         (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range"),
                         (["replay", "bag", "--out", "o", "--window-size", "1"], "'window.size' = 1 is out of range"),
+                        (["evaluate", "--win", "5,1"], "argument --win: expected whole numbers >= 2, got '5,1'"),
+                        (["simulate", "--split", "--train", "0", "--test", "0", "--out", "x"], "writes no bag"),
+                        (["evaluate", "--scales", "0"], "argument --scales: expected numbers > 0, got '0'"),
                         (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
@@ -117,3 +120,18 @@ def test_an_unknown_option_is_refused_by_its_subcommand_with_the_closest_known_o
                          capture_output=True, text=True)
     assert res.returncode == 2 and "usage: topometric inspect" in res.stderr
     assert "(did you mean --points-topic?)" in res.stderr
+
+
+def test_benchmarks_help_lists_every_benchmark_and_refuses_an_unknown_one():
+    """`python -m benchmarks --help`: every bench_<name>.py with what it measures (the ones a bare run leaves
+    out marked); an unknown name: exit 2 and the list, not a ModuleNotFoundError traceback."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    names = sorted(p.stem.removeprefix("bench_") for p in (root / "benchmarks").glob("bench_*.py"))
+    res = subprocess.run([sys.executable, "-m", "benchmarks", "--help"], capture_output=True, text=True, cwd=root)
+    listed = [line.split()[0] for line in res.stdout.splitlines() if line.startswith("  ")]
+    assert res.returncode == 0 and listed == names and "sensors" in names, res.stdout
+    assert "The whole per-scan pipeline per sensor" in res.stdout and "(not in the default set)" in res.stdout
+    res = subprocess.run([sys.executable, "-m", "benchmarks", "nope"], capture_output=True, text=True, cwd=root)
+    assert res.returncode == 2 and "no benchmark named nope" in res.stderr and "Traceback" not in res.stderr

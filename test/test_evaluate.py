@@ -40,6 +40,43 @@ def test_quick_experiment_tables_and_pne_tracks_rotation_noise(tmp_path, capsys)
     assert main(["evaluate", "--quick", "--out", str(out), "--workers", "1"]) == 0
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").iterdir()} == stamps
     assert (out / "correlations.csv").read_text() == before
+    assert f"{len(list((out / 'runs').iterdir()))} of " in capsys.readouterr().out  # says what it reused
+
+
+def test_runs_of_another_setup_are_not_reused_under_a_new_spec(tmp_path):
+    """Stored runs are named by scene, trajectory, window, noise and scale only: an OUT holding runs made with
+    other frames (or seed, radius, baseline windows) is refused before any work, not reported as the new spec."""
+    import json
+    from dataclasses import asdict, replace
+
+    from topometric_ros.experiments.evaluate import run
+
+    quick = ExperimentSpec.quick()
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "spec.json").write_text(json.dumps(asdict(quick)))
+    with pytest.raises(ValueError, match=r"holds runs made with frames 100 \(now 50\): give another --out"):
+        run(replace(quick, frames=50), tmp_path, workers=1, progress=False, engine="local")
+    assert json.loads((tmp_path / "spec.json").read_text())["frames"] == 100  # left as it was
+
+
+def test_a_claim_without_the_numbers_to_judge_it_is_undefined_not_holding():
+    """Spearman NaN for the claimed metric (no baselines, a 1-scan window): no verdict, and the metrics that
+    were not measured are not counted as compared."""
+    from topometric_ros.experiments.evaluate import claims, main_pool
+
+    spec = ExperimentSpec(scenes=("office1",), trajectories=1, windows=(5,), noises=("r",), scales=(1.0,),
+                          labels=("gt",), baseline_windows=1)
+    row = dict(labels="gt", noise="r", scale=1.0)
+    nan = float("nan")
+    tables = {"multirelation": [dict(row, noise="rt", windows="all", mr_pne_cpv_rpe=nan)], "correlations": [
+        dict(row, windows=pool, metric=m, spearman=v) for pool in (main_pool(spec), "per-trajectory")
+        for m, v in (("pne", nan), ("cpv", nan), ("mme", nan))]}
+    lines = claims(spec, tables, "gt")
+    assert lines and all("undefined" in line and "holds" not in line for line in lines), lines
+    tables["correlations"] = [dict(r, spearman=0.9 if r["metric"] == "pne" else 0.5 if r["metric"] == "cpv" else nan)
+                              for r in tables["correlations"]]
+    lines = claims(spec, tables, "gt")
+    assert "has the highest Spearman of PNE/CPV — holds (PNE 0.9" in lines[0], lines
 
 
 def test_perturbation_respects_mode_and_scale():

@@ -29,6 +29,29 @@ def test_eval_seg_on_the_clouds_own_labels_is_perfect(office_bag, tmp_path, caps
     assert "miou_paper" in capsys.readouterr().out
 
 
+def test_eval_seg_reads_another_cloud_topic_and_tells_same_named_bags_apart(office_bag, tmp_path):
+    """A bag whose only PointCloud2 topic is not /points is read (as replay and inspect read it); two bags of one
+    name in different folders (two robots, or simulate --split per sensor) get rows of their own."""
+    from topometric_ros import bag as bags
+
+    src, _ = office_bag
+    copies = []
+    for robot in ("robot1", "robot2"):
+        dst, clouds = tmp_path / robot / "test" / "office1_0", 0
+        with bags.BagWriter(dst) as w:
+            for topic, t_ns, msg in bags.read_messages(src):
+                clouds += topic == "/points"
+                if clouds > 4:
+                    break
+                w.write("/lidar/points" if topic == "/points" else topic, t_ns * 1e-9, msg)
+        copies.append(dst)
+    out = tmp_path / "out"
+    assert main(["eval-seg", *map(str, copies), "--mode", "labels", "--out", str(out)]) == 0
+    rows = _rows(out / "per_class_iou.csv")
+    assert {"bag:robot1/test/office1_0", "bag:robot2/test/office1_0"} <= set(rows), list(rows)
+    assert float(rows["all"]["miou_paper"]) == 100.0
+
+
 @pytest.fixture(scope="module")
 def trained(office_bag, tmp_path_factory):
     bag, _ = office_bag

@@ -57,6 +57,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.split and len(args.scene) != 1:
         print("error: give one --scene without --split", file=sys.stderr)
         return 2
+    if args.split and args.train + args.test == 0:
+        print("error: --split with --train 0 and --test 0 writes no bag", file=sys.stderr)
+        return 2
     for name in args.sensor:
         target = out / name if len(args.sensor) > 1 else out
         cfg = replace(_sim_config(args, args.scene[0]), sensor=name)
@@ -251,6 +254,22 @@ def _floats(text: str) -> tuple:
     return tuple(float(x) for x in text.split(",") if x.strip())
 
 
+def _positive_floats(text: str) -> tuple:
+    """A comma list of numbers > 0 (argparse type)."""
+    values = _floats(text)
+    if not values or min(values) <= 0 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected numbers > 0, got {text!r}")
+    return values
+
+
+def _window_sizes(text: str) -> tuple:
+    """A comma list of window sizes, whole numbers >= 2 (argparse type; a window needs two scans)."""
+    values = _ints(text)
+    if not values or min(values) < 2:
+        raise argparse.ArgumentTypeError(f"expected whole numbers >= 2, got {text!r}")
+    return values
+
+
 def _grid_axis(text: str) -> tuple[str, tuple]:
     """KEY=V1,V2 of --grid: a numeric health setting and the values to sweep, each read and checked as --set
     reads it (YAML, config.apply)."""
@@ -318,9 +337,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if bad:
         print(f"error: unknown noise mode or label source: {', '.join(bad)}", file=sys.stderr)
         return 2
-    paths = run(spec, args.out, workers=args.workers, engine=args.engine, address=args.address or None)
+    out = args.out or ("out/evaluate_quick" if args.quick else "results")
+    paths = run(spec, out, workers=args.workers, engine=args.engine, address=args.address or None)
     print(Path(paths["report"]).read_text())
-    print(f"wrote {args.out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s")
+    print(f"wrote {out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s; {paths['reused']} of "
+          f"{paths['settings']} settings reused from {out}/runs")
     return 0
 
 
@@ -652,7 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
                    help="the simulated odometry's everyday error under the episodes")
     a.add_argument("--rate", type=_positive_number, default=5.0, help="scans per second of the bags (10 = every sweep)")
-    a.add_argument("--scales", type=_floats, default=None, help="drift scales of the episode bags (default 1, 1.5, 2)")
+    a.add_argument("--scales", type=_positive_floats, default=None, help="drift scales of the episode bags (default 1, 1.5, 2)")
     a.add_argument("--sensors", type=_sensors, default=None,
                    help="sensors the bags cycle through (default: the split's own, held out between splits)")
     a.add_argument("--groups", type=_count, default=0,
@@ -670,9 +691,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("evaluate", help="the paper's noise experiment: every metric against RPE, correlations, timing")
     e.add_argument("--scenes", type=_scenes, default=None, help="scenes (default: floor2,garage)")
-    e.add_argument("--win", type=_ints, default=None, help="window sizes (default: 5,10,15)")
+    e.add_argument("--win", type=_window_sizes, default=None, help="window sizes (default: 5,10,15)")
     e.add_argument("--noise", type=_words, default=None, help="noise modes among r,t,rt (default: all)")
-    e.add_argument("--scales", type=_floats, default=None, help="noise scales (default: 1,1.5,2)")
+    e.add_argument("--scales", type=_positive_floats, default=None, help="noise scales (default: 1,1.5,2)")
     e.add_argument("--labels", type=_words, default=None,
                    help="label sources: network (shipped segmentation) and/or gt (default: network,gt)")
     e.add_argument("--trajectories", type=_positive, default=None, help="trajectories per scene (default: 2)")
@@ -681,7 +702,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="windows per trajectory and setting that also get MME/MPV/MOM (default: 8)")
     _add_engine_args(e)
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
-    e.add_argument("--out", default="results", help="output directory; finished settings are reused")
+    e.add_argument("--out", default="", help="output directory; finished settings are reused (\"\": results, the "
+                                             "shipped report; with --quick out/evaluate_quick)")
     e.set_defaults(func=cmd_evaluate)
 
     q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")

@@ -234,6 +234,7 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
     from ..engine import run_tasks
 
     out = Path(out)
+    _same_runs(spec, out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.json").write_text(json.dumps(asdict(spec), indent=2))
     started = time.perf_counter()
@@ -246,7 +247,25 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
     _all(run_tasks(_job_task, [(out, spec, *j) for j in todo], desc="settings", **kw), "job")
     paths = write_tables(spec, out)
     paths["elapsed_s"] = round(time.perf_counter() - started, 1)
+    paths["reused"], paths["settings"] = len(jobs(spec)) - len(todo), len(jobs(spec))
     return paths
+
+
+#: ExperimentSpec fields that shape every stored run but are not in the run files' names.
+RUN_SHAPING = ("frames", "seed", "radius", "baseline_windows")
+
+
+def _same_runs(spec: ExperimentSpec, out: Path) -> None:
+    """ValueError when ``out`` holds runs made with other RUN_SHAPING settings: reusing them would report
+    the old numbers under the new spec."""
+    path = out / "spec.json"
+    if not path.is_file() or not (out / "runs").is_dir():
+        return
+    old = json.loads(path.read_text())
+    differ = [f"{k} {old.get(k)!r} (now {getattr(spec, k)!r})" for k in RUN_SHAPING if old.get(k) != getattr(spec, k)]
+    if differ:
+        raise ValueError(f"{out} holds runs made with {', '.join(differ)}: give another --out, or remove {out} to "
+                         "compute them again")
 
 
 def load_runs(spec: ExperimentSpec, out: Path) -> list[tuple[tuple, dict[str, np.ndarray]]]:
@@ -446,13 +465,19 @@ def figures(spec: ExperimentSpec, tables: dict, runs, out: Path) -> dict:
 
     fig, axes = plt.subplots(2, len(spec.noises), figsize=(4 * len(spec.noises), 6.5), squeeze=False)
     for j, noise in enumerate(spec.noises):
-        sel = [d for (lab, _, _, w, n, _), d in runs
+        sel = [(scale, d) for (lab, _, _, w, n, scale), d in runs
                if lab == spec.labels[0] and w == spec.correlation_window and n == noise]
-        for i, metric in enumerate(("pne", "cpv")):
-            for d in sel:
-                axes[i, j].scatter(d["rpe"], d[metric], s=4, alpha=0.4)
+        for i, (metric, unit) in enumerate((("pne", "PNE (nats)"), ("cpv", "CPV (m²)"))):
+            colours = {}
+            for scale, d in sel:  # one colour per noise scale, each trajectory's windows in it
+                first = scale not in colours
+                colours.setdefault(scale, f"C{len(colours)}")
+                axes[i, j].scatter(d["rpe"], d[metric], s=4, alpha=0.4, color=colours[scale],
+                                   label=f"noise ×{scale:g}" if first else None)
             axes[i, j].set_title(f"{metric.upper()} vs RPE, noise {noise}")
             axes[i, j].set_xlabel("RPE (Eq. 4)")
+            axes[i, j].set_ylabel(unit)
+            axes[i, j].legend(fontsize=7, markerscale=3)
     fig.tight_layout()
     paths["fig_scatter"] = _save(fig, out / "scatter.png")
     return paths
@@ -480,14 +505,18 @@ def claims(spec: ExperimentSpec, tables: dict, labels: str) -> list[str]:
             for pool in (main_pool(spec), "per-trajectory"):
                 rows = {r["metric"]: r["spearman"] for r in corr
                         if r["noise"] == noise and r["scale"] == scale and r["windows"] == pool}
-                top = max(rows, key=lambda m: -np.inf if not np.isfinite(rows[m]) else rows[m])
-                verdict = "holds" if top == best else "does NOT hold"
+                measured = {m: v for m, v in rows.items() if np.isfinite(v)}
+                if best not in measured or len(measured) < 2:  # nothing to compare: no verdict
+                    verdict = "undefined (too few metrics measured)"
+                else:
+                    verdict = "holds" if max(measured, key=measured.get) == best else "does NOT hold"
                 lines.append(f"- noise {noise} ×{scale:g}, windows {pool}: {best.upper()} has the highest Spearman of "
-                             f"{'/'.join(m.upper() for m in rows)} — {verdict} "
+                             f"{'/'.join(m.upper() for m in measured) or 'none measured'} — {verdict} "
                              f"({', '.join(f'{m.upper()} {_fmt(v)}' for m, v in rows.items())})")
     for r in tables["multirelation"]:
         if r["labels"] == labels and r["noise"] == "rt":
-            verdict = "holds" if r["mr_pne_cpv_rpe"] >= 0.9 else "does NOT hold"
+            verdict = ("undefined" if not np.isfinite(r["mr_pne_cpv_rpe"])
+                       else "holds" if r["mr_pne_cpv_rpe"] >= 0.9 else "does NOT hold")
             lines.append(f"- noise rt ×{r['scale']:g}, windows {r['windows']}: Multi-relation(PNE, CPV, RPE) = "
                          f"{_fmt(r['mr_pne_cpv_rpe'])} ≥ 0.9 — {verdict}")
     return lines

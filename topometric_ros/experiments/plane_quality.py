@@ -194,7 +194,7 @@ def plot_plane_quality(res: dict, path) -> None:
     a.set_ylim(0.8, 1.0)
     a.set_xticks(list(x), scenes)
     a.legend(loc="lower right")
-    a.set_title(f"plane quality ({res['detector']})")
+    a.set_title(f"plane quality, {res.get('sensor') or 'sensor?'} ({res['detector']} detector)")
     b.bar(list(x), [res["scenes"][s]["ms_per_scan"] for s in scenes])
     b.set_xticks(list(x), scenes)
     b.set_ylabel("ms per scan (median)")

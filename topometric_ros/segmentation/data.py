@@ -30,9 +30,11 @@ class LabelledScan:
     stamp_ns: int = 0
 
 
-def read_scans(bag_path: str | Path, topic: str = "/points", every: int = 1, limit: int = 0) -> Iterator[LabelledScan]:
-    """Every ``every``-th cloud of ``topic`` in a bag (at most ``limit`` when > 0), returns only, on the grid
-    the monitor builds for it (no sensor named: the layout is read off the cloud)."""
+def read_scans(bag_path: str | Path, topic: str = "", every: int = 1, limit: int = 0) -> Iterator[LabelledScan]:
+    """Every ``every``-th cloud of ``topic`` in a bag ("": /points, else the bag's only PointCloud2 topic; at
+    most ``limit`` when > 0), returns only, on the grid the monitor builds for it (no sensor named: the layout
+    is read off the cloud)."""
+    topic, _ = bag.pick_topic(bag.topics(bag_path), bag.POINTCLOUD2, topic, "/points")
     n = 0
     for i, (_, t_ns, msg) in enumerate(bag.read_messages(bag_path, [topic])):
         if i % every:
@@ -76,7 +78,7 @@ def cache_key(bags: Sequence[str | Path], every: int) -> str:
     return h.hexdigest()[:12]
 
 
-def bag_images(bag_path: str | Path, topic: str = "/points", every: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
+def bag_images(bag_path: str | Path, topic: str = "", every: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
     """(images, labels) of :func:`scan_images` for every ``every``-th labelled scan of one bag."""
     return [scan_images(scan) for scan in read_scans(bag_path, topic, every)]
 

@@ -21,7 +21,7 @@ from .metrics import accuracy, confusion, iou_per_class, miou
 
 
 def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, limit: int = 0,
-                  topic: str = "/points", progress: bool = True) -> dict:
+                  topic: str = "", progress: bool = True) -> dict:
     """Score ``segmenter`` (None = the clouds' own label field, a sanity check) on labelled bags.
 
     Returns {'bags': {bag: conf}, 'scenes': {scene: conf}, 'sensors': {sensor: conf}, 'all': conf,
@@ -64,11 +64,20 @@ def summary_row(name: str, conf: np.ndarray) -> dict:
     return row
 
 
+def _bag_label(path: Path, names: list[str]) -> str:
+    """A bag's name, with the folders above it up to one that tells it apart when ``names`` (every bag's name)
+    holds it twice (simulate --split names a sensor's bags alike: VLP-16/test/office1_0, OS1-32/test/...)."""
+    if names.count(path.name) == 1:
+        return path.name
+    return "/".join(path.parts[-3:])
+
+
 def write_report(result: dict, out: str | Path, title: str = "") -> dict:
     """per_class_iou.csv, confusion.csv, confusion.png and metrics.json under ``out``; returns metrics."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = [summary_row(f"bag:{Path(b).name}", c) for b, c in result["bags"].items()]
+    names = [Path(b).name for b in result["bags"]]
+    rows = [summary_row(f"bag:{_bag_label(Path(b), names)}", c) for b, c in result["bags"].items()]
     rows += [summary_row(f"scene:{s}", c) for s, c in result["scenes"].items()]
     if len(result.get("sensors", {})) > 1:
         rows += [summary_row(f"sensor:{s}", c) for s, c in result["sensors"].items()]
