@@ -70,10 +70,10 @@ def test_train_writes_loadable_weights_and_a_model_card(trained, office_bag, tmp
     assert len(card["training"]["history"]) == 1 and card["weights"]["sha256"]
     bag, _ = office_bag
     res = tmp_path / "net"
-    assert main(["eval-seg", str(bag), "--weights", str(out / "w" / "rangenet.pt"), "--limit", "2",
+    assert main(["eval-seg", str(bag), "--weights", str(out / "w" / "rangenet.pt"), "--limit", "3",
                  "--out", str(res)]) == 0
     metrics = json.loads((res / "metrics.json").read_text())
-    assert metrics["speed"]["scans"] == 2 and metrics["speed"]["scans_per_s"] > 0
+    assert metrics["speed"]["scans"] == 2 and metrics["speed"]["scans_per_s"] > 0  # the first scan is warm-up
 
 
 def test_quantize_calibrates_trained_weights_for_int8_and_eval_seg_says_which_ran(trained, office_bag, tmp_path,

@@ -459,6 +459,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
     sp = metrics["speed"]
     if sp.get("scans"):
         print(f"speed: {sp['scans_per_s']} scans/s (median {sp['median_ms']} ms/scan over {sp['scans']} scans, "
+              "each sensor's first left out as warm-up, "
               f"{args.device}, {args.threads} thread(s), {args.passes} pass(es), "
               f"{'every beam' if not args.max_beams else f'at most {args.max_beams} beams'}, "
               f"{f'{args.knn}-nearest-neighbour vote' if args.knn else 'no neighbour vote'}, "
