@@ -625,6 +625,7 @@ def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, t
 @pytest.mark.parametrize("bad, words", [
     ({"health.stale_after_s": 0}, ["health.stale_after_s", "out of range"]),  # int for a float leaf
     ({"window.size": 0.0}, ["window.size", "out of range"]),  # float for an int leaf
+    ({"window.size": 1}, ["parameter 'window.size' = 1 is out of range [2, 200]"]),  # rclpy's own check first
     ({"window.sise": 10}, ["unknown parameter", "window.sise"]),
     ({"segmentation.mode": "magic"}, ["segmentation.mode", "one of"]),
 ])

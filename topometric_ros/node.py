@@ -33,7 +33,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -165,7 +165,11 @@ class MonitorNode(Node):
             if name in parameters.UPDATER_SPEC:
                 values[name] = self.get_parameter(name).value
                 continue
-            values[name] = self.declare_parameter(name, default, _descriptor(name, default, texts[name])).value
+            try:
+                values[name] = self.declare_parameter(name, default, _descriptor(name, default, texts[name])).value
+            except InvalidParameterValueException:  # rclpy's range check came first: say it as ours does
+                parameters.check(name, self._parameter_overrides[name].value)
+                raise
         given = set(getattr(self, "_parameter_overrides", {}))  # from params files and -p (rclpy keeps them)
         parameters.check_known(given, {n for n in given if self.has_parameter(n)})
         for name, value in values.items():
