@@ -30,8 +30,9 @@ def test_eval_seg_on_the_clouds_own_labels_is_perfect(office_bag, tmp_path, caps
 
 
 def test_eval_seg_reads_another_cloud_topic_and_tells_same_named_bags_apart(office_bag, tmp_path):
-    """A bag whose only PointCloud2 topic is not /points is read (as replay and inspect read it); two bags of one
-    name in different folders (two robots, or simulate --split per sensor) get rows of their own."""
+    """A bag whose only PointCloud2 topic is not /points is read (as replay and inspect read it); bags are found
+    anywhere below a folder given (as the audit finds them: simulate --split writes SENSOR/test/BAG); two bags
+    of one name in different folders (two robots, or one per sensor) get rows of their own."""
     from topometric_ros import bag as bags
 
     src, _ = office_bag
@@ -46,7 +47,7 @@ def test_eval_seg_reads_another_cloud_topic_and_tells_same_named_bags_apart(offi
                 w.write("/lidar/points" if topic == "/points" else topic, t_ns * 1e-9, msg)
         copies.append(dst)
     out = tmp_path / "out"
-    assert main(["eval-seg", *map(str, copies), "--mode", "labels", "--out", str(out)]) == 0
+    assert main(["eval-seg", str(tmp_path), "--mode", "labels", "--out", str(out)]) == 0  # bags found below
     rows = _rows(out / "per_class_iou.csv")
     assert {"bag:robot1/test/office1_0", "bag:robot2/test/office1_0"} <= set(rows), list(rows)
     assert float(rows["all"]["miou_paper"]) == 100.0

@@ -392,7 +392,7 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .segmentation.data import expand_bags
+    from .audit import find_bags
     from .segmentation.model import ModelSpec
     from .segmentation.train import TrainConfig, train
 
@@ -401,8 +401,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                       device=args.device, workers=args.workers)
     spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")),
                      context=tuple(int(d) for d in args.context.split(",")))
-    bags = expand_bags(args.bags)
-    val = expand_bags(args.val) if args.val else []
+    bags = find_bags(args.bags)
+    val = find_bags(args.val) if args.val else []
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
     card = train(bags, args.out, cfg, spec, val, args.cache, args.command_line, init=args.init or None)
     val_m = card["metrics"].get("val", {})
@@ -429,10 +429,10 @@ def _quantize_hint(weights) -> None:
 
 def cmd_quantize(args: argparse.Namespace) -> int:
     from .segmentation.checkpoint import SHIPPED
-    from .segmentation.data import expand_bags
+    from .audit import find_bags
     from .segmentation.quantize import make_ranges
 
-    bags = expand_bags(args.bags)
+    bags = find_bags(args.bags)
     path = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
     print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
     return 0
@@ -440,10 +440,10 @@ def cmd_quantize(args: argparse.Namespace) -> int:
 
 def cmd_eval_seg(args: argparse.Namespace) -> int:
     from .config import SegmentationConfig
-    from .segmentation.data import expand_bags
+    from .audit import find_bags
     from .segmentation.evaluate import evaluate_bags, format_table, write_report
 
-    bags = expand_bags(args.bags)
+    bags = find_bags(args.bags)
     segmenter = None
     if args.mode == "network":
         from .segmentation.infer import Segmenter
@@ -544,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     t = sub.add_parser("train", help="train the segmentation network on labelled bags (simulated train split)")
-    t.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/train)")
+    t.add_argument("bags", nargs="+", help="bags, or folders with bags anywhere below (e.g. data/sim/train)")
     t.add_argument("--val", nargs="*", default=[], help="validation bags (scored every epoch; the epoch of best mIoU on them is saved)")
     t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
     t.add_argument("--epochs", type=_positive, default=12, help="passes over the crops")
@@ -574,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_blend)
 
     e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
-    e.add_argument("bags", nargs="+", help="bag folders, or folders of bags (e.g. data/sim/test)")
+    e.add_argument("bags", nargs="+", help="bags, or folders with bags anywhere below (e.g. data/sim/test)")
     e.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
     e.add_argument("--mode", default="network", choices=("network", "labels"),
                    help="network, or labels (score the cloud's own label field: a sanity check)")

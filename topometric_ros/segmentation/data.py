@@ -83,7 +83,7 @@ def bag_images(bag_path: str | Path, topic: str = "", every: int = 1) -> list[tu
     return [scan_images(scan) for scan in read_scans(bag_path, topic, every)]
 
 
-def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, topic: str = "/points",
+def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, topic: str = "",
                 progress: bool = True, workers: int = 1) -> dict[tuple, dict[str, np.ndarray]]:
     """Project every ``every``-th labelled scan of ``bags`` once and save them as an .npz at ``path``;
     ``workers`` > 1 projects the bags in that many processes (the same cache, in the same order).
@@ -122,7 +122,7 @@ def build_cache(bags: Sequence[str | Path], path: str | Path, every: int = 1, to
 
 
 def load_or_build_cache(bags: Sequence[str | Path], cache_dir: str | Path, every: int = 1,
-                        topic: str = "/points", progress: bool = True,
+                        topic: str = "", progress: bool = True,
                         workers: int = 1) -> dict[tuple, dict[str, np.ndarray]]:
     """The cache for these bags under ``cache_dir`` (built on first use, in ``workers`` processes), grouped
     by image shape."""
@@ -136,16 +136,3 @@ def load_or_build_cache(bags: Sequence[str | Path], cache_dir: str | Path, every
             h, w = map(int, shape.split("x"))
             data.setdefault((h, w), {})[name] = z[key]
     return data
-
-
-def expand_bags(paths: Sequence[str | Path]) -> list[Path]:
-    """Bag folders from paths that are bags (have metadata.yaml) or folders of bags (one level down)."""
-    bags: list[Path] = []
-    for p in map(Path, paths):
-        if (p / "metadata.yaml").is_file():
-            bags.append(p)
-        elif p.is_dir() and (found := sorted(d for d in p.iterdir() if (d / "metadata.yaml").is_file())):
-            bags.extend(found)
-        else:
-            raise FileNotFoundError(f"no rosbag2 bag at {p} (a bag folder has metadata.yaml)")
-    return bags
