@@ -39,7 +39,7 @@ import numpy as np
 
 from .config import Config, flatten
 from .reports import write_csv, write_json
-from .storage import is_bag_folder
+from .bag import not_a_bag
 
 MANIFEST = "audit.json"
 REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
@@ -60,9 +60,7 @@ def _is_bag(p: Path) -> bool:
         return False  # an audit's own output (its diagnostics.mcap), not a bag
     if (p / "windows.json").is_file() or (p.parent / "windows.json").is_file():
         return False  # a replay's reports (its diagnostics.mcap beside windows.json), not a bag
-    if p.is_file():
-        return p.suffix in (".mcap", ".db3")
-    return is_bag_folder(p)
+    return not not_a_bag(p)
 
 
 def find_bags(args: Iterable[str]) -> list[Path]:

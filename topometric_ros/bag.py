@@ -64,17 +64,25 @@ def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
-def check_bag(path: str | Path) -> None:
-    """BagError unless ``path`` is a rosbag2 bag folder or a .mcap / .db3 file, saying which it is not."""
+def not_a_bag(path: str | Path) -> str:
+    """Why ``path`` is no rosbag2 bag (a bag folder, or a .mcap / .db3 file); "" when it is one."""
     from . import storage
 
     path = Path(path)
     if not path.exists():
-        raise BagError(f"bag not found: {path}")
+        return f"bag not found: {path}"
     if path.is_dir() and not storage.is_bag_folder(path):
-        raise BagError(f"no rosbag2 bag at {path} (a bag folder has metadata.yaml and .mcap or .db3 files)")
+        return f"no rosbag2 bag at {path} (a bag folder has metadata.yaml and .mcap or .db3 files)"
     if path.is_file() and path.suffix not in (".mcap", ".db3"):
-        raise BagError(f"{path} is not a rosbag2 bag: give a bag folder or its .mcap or .db3 file")
+        return f"{path} is not a rosbag2 bag: give a bag folder or its .mcap or .db3 file"
+    return ""
+
+
+def check_bag(path: str | Path) -> None:
+    """BagError unless ``path`` is a rosbag2 bag (not_a_bag says why)."""
+    why = not_a_bag(path)
+    if why:
+        raise BagError(why)
 
 
 def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = "", default: str = "",

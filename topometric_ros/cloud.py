@@ -185,10 +185,10 @@ def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
 def bad_beam_note(points: int, model: Any = None) -> str:
     """Console / report line for ``points`` dropped for a beam id out of range: of the named sensor model (a
     sensors.SensorModel; None: grid.MAX_BEAMS); "" for none."""
-    from .grid import MAX_BEAMS
-
     if not points:
         return ""
+    from .grid import MAX_BEAMS
+
     if model is None:
         return f"{points} points dropped: beam id outside 0..{MAX_BEAMS - 1}"
     return (f"{points} points dropped: beam id outside 0..{model.beams - 1}, the {model.beams} beams of "

@@ -68,8 +68,8 @@ def summary_row(name: str, conf: np.ndarray) -> dict:
 
 
 def _bag_label(path: Path, names: list[str]) -> str:
-    """A bag's name, with the folders above it up to one that tells it apart when ``names`` (every bag's name)
-    holds it twice (simulate --split names a sensor's bags alike: VLP-16/test/office1_0, OS1-32/test/...)."""
+    """A bag's name; with the two folders above it when ``names`` (every bag's name) holds it twice (simulate
+    --split names a sensor's bags alike: VLP-16/test/office1_0, OS1-32/test/office1_0)."""
     if names.count(path.name) == 1:
         return path.name
     return "/".join(path.parts[-3:])
