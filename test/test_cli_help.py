@@ -55,6 +55,8 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
 
     parser = build_parser()
     assert parser.parse_args(["simulate", "--frames", "1", "--out", "x"]).frames == 1
+    assert parser.parse_args(["train", "x", "--share", "Mid-360=0.25", "--share", "VLP-16=0.1"]).share == [
+        ("Mid-360", 0.25), ("VLP-16", 0.1)]
     for argv, words in ((["simulate", "--frames", "0", "--out", "x"], "argument --frames: expected a whole number >= 1"),
                         (["demo", "--frames", "-3"], "argument --frames: expected a whole number >= 1"),
                         (["inspect", "bag", "--every", "0"], "argument --every: expected a whole number >= 1"),
@@ -67,7 +69,10 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
-                        (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb")):
+                        (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb"),
+                        (["train", "x", "--share", "Mid-360"], "argument --share: expected MODEL=FRACTION"),
+                        (["train", "x", "--share", "Mid360=0.3"], "got 'Mid360=0.3'"),
+                        (["train", "x", "--share", "Mid-360=2"], "argument --share: expected a number within [0, 1]")):
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv], capture_output=True, text=True)
         assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)
 

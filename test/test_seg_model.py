@@ -20,7 +20,8 @@ from topometric_ros.segmentation.metrics import confusion
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
 from topometric_ros.segmentation.train import (TrainConfig, augment, class_weights, confusion_on, lovasz_softmax,
-                                               model_card, sample_crops, sensor_strata, strata_summary)
+                                               model_card, sample_crops, sensor_strata, strata_summary,
+                                               validation_entry)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -319,7 +320,44 @@ def test_crops_give_every_sensor_model_an_equal_share_however_its_images_are_gro
     assert summary[3].endswith("8 images (8x1024): OS1-128")
 
 
+def test_validation_is_the_mean_of_each_sensor_models_miou_not_the_pooled_pixels():
+    perfect = np.diag([0, 100, 100, 100, 100, 100, 0]).astype(np.int64)  # the five paper classes right
+    poor = perfect.copy()
+    poor[C.FLOOR, C.FLOOR], poor[C.FLOOR, C.WALL] = 50, 50  # floor IoU 0.5, wall 100 / 150
+    entry = validation_entry({"OS1-128": 8 * perfect, "VLP-16": poor})
+    poor_miou = (0.5 + 100 / 150 + 3) / 5
+    assert entry["val_miou_by_sensor"] == {"OS1-128": 1.0, "VLP-16": round(poor_miou, 4)}
+    assert entry["val_miou"] == pytest.approx((1 + poor_miou) / 2, abs=1e-4)
+    pooled = (850 / 900 + 900 / 950 + 3) / 5  # the 128-beam model's pixels would hide the VLP-16's floor
+    assert entry["val_iou"]["floor"] == pytest.approx(850 / 900, abs=1e-4) and pooled > entry["val_miou"] + 0.05
+
+
 SENSOR_CODES = {"Mid-360": 0, "OS0-32": 1, "OS1-128": 2, "OS1-64": 3, "VLP-32C": 4}
+
+
+def test_a_share_set_for_one_model_leaves_the_rest_equal_shares_and_is_what_batches_draw():
+    def group(sensors, width):
+        fill = np.array([SENSOR_CODES[s] for s in sensors], np.float16)[:, None, None, None]
+        return {"images": np.broadcast_to(fill, (len(sensors), 4, 8, width)).copy(),
+                "labels": np.zeros((len(sensors), 8, width), np.uint8), "sensor": np.array(sensors)}
+
+    groups = [group(["Mid-360"] * 3, 576), group(["Mid-360"], 640), group(["OS1-128"] * 4 + ["OS0-32"], 1024),
+              group(["VLP-32C"] * 2, 1800)]
+    strata, chances = sensor_strata(groups, {"Mid-360": 0.4})
+    per_model = {}
+    for st, p in zip(strata, chances):
+        per_model[st.sensor] = per_model.get(st.sensor, 0) + p
+    assert per_model == pytest.approx({"Mid-360": 0.4, "OS0-32": 0.2, "OS1-128": 0.2, "VLP-32C": 0.2})
+    assert chances[:2] == pytest.approx([0.3, 0.1])  # the Mid-360's share split over its widths by image count
+    rng = np.random.default_rng(3)
+    drawn = [int(sample_crops(groups, 1, 480, rng, (strata, chances))[0][0, 0, 0, 0]) for _ in range(4000)]
+    assert np.bincount(drawn, minlength=5)[SENSOR_CODES["Mid-360"]] / 4000 == pytest.approx(0.4, abs=0.03)
+    assert np.allclose(sensor_strata(groups, {})[1], sensor_strata(groups)[1])
+    for bad in ({"HDL-64E": 0.2}, {"Mid-360": 0.7, "VLP-32C": 0.5}, {"Mid-360": 1.0}, {"Mid-360": -0.1}):
+        with pytest.raises(ValueError, match="--share"):
+            sensor_strata(groups, bad)
+    every = {"Mid-360": 0.25, "OS0-32": 0.25, "OS1-128": 0.25, "VLP-32C": 0.25}
+    assert np.allclose(sensor_strata(groups, every)[1], sensor_strata(groups)[1])
 
 
 def test_crops_are_the_images_columns_wrapping_around_on_any_device():

@@ -317,6 +317,17 @@ _positive_number, _non_negative = _number(float, 0.0, strictly=True), _number(fl
 _fraction = _number(float, 0.0, high=1.0)
 
 
+def _model_share(text: str) -> tuple:
+    """argparse type: MODEL=FRACTION (a sensor model of sensors.SENSORS, a share in [0, 1])."""
+    from .sensors import SENSORS
+
+    model, sep, share = text.partition("=")
+    if not sep or model not in SENSORS:
+        raise argparse.ArgumentTypeError(f"expected MODEL=FRACTION with a sensor model of {', '.join(SENSORS)}, "
+                                         f"got {text!r}")
+    return model, _fraction(share)
+
+
 def _words(text: str) -> tuple:
     return tuple(x.strip() for x in text.split(",") if x.strip())
 
@@ -398,7 +409,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(epochs=args.epochs, crops_per_epoch=args.crops, batch=args.batch, crop_width=args.crop_width,
                       lr=args.lr, every=args.every, seed=args.seed, threads=args.threads, max_minutes=args.max_minutes,
-                      device=args.device, workers=args.workers)
+                      device=args.device, workers=args.workers, shares=dict(args.share))
     spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")),
                      context=tuple(int(d) for d in args.context.split(",")))
     bags = find_bags(args.bags)
@@ -407,7 +418,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     card = train(bags, args.out, cfg, spec, val, args.cache, args.command_line, init=args.init or None)
     val_m = card["metrics"].get("val", {})
     if "val_miou" in val_m:
-        print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes); weights in {args.out}")
+        print(f"val mIoU {100 * val_m['val_miou']:.2f} (paper classes, mean over sensor models); weights in {args.out}")
     _quantize_hint(f"{args.out}/rangenet.pt")
     return 0
 
@@ -422,9 +433,10 @@ def cmd_blend(args: argparse.Namespace) -> int:
 
 
 def _quantize_hint(weights) -> None:
-    """New weights have no int8 activation ranges yet: say how to make them."""
+    """New weights have no int8 activation ranges and no non-repetitive statistics yet: say how to make them."""
     print(f"for the int8 network (segmentation.precision auto/int8): topometric quantize <validation bags> "
           f"--weights {weights}")
+    print(f"for non-repetitive (Livox-like) scans: topometric norm-stats <their training bags> --weights {weights}")
 
 
 def cmd_quantize(args: argparse.Namespace) -> int:
@@ -435,6 +447,18 @@ def cmd_quantize(args: argparse.Namespace) -> int:
     bags = find_bags(args.bags)
     path = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
     print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
+    return 0
+
+
+def cmd_norm_stats(args: argparse.Namespace) -> int:
+    from .segmentation.checkpoint import SHIPPED
+    from .audit import find_bags
+    from .segmentation.norm_stats import make_stats
+
+    bags = find_bags(args.bags)
+    path, images = make_stats(bags, args.weights or SHIPPED, args.every, args.command_line)
+    print(f"wrote {path} (BatchNorm statistics of {images} non-repetitive range images from {len(bags)} bag(s); "
+          f"the segmenter uses them for non-repetitive scans)")
     return 0
 
 
@@ -564,6 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when there is one)")
     t.add_argument("--workers", type=_count, default=1, help="processes that build the projected-scan cache")
     t.add_argument("--cache", default="data/cache", help="folder for the projected-scan cache")
+    t.add_argument("--share", type=_model_share, action="append", default=[], metavar="MODEL=FRACTION",
+                   help="this sensor model's share of the batches, e.g. Mid-360=0.25 (repeatable; the other models "
+                        "split the rest equally; default: every model an equal share)")
     t.set_defaults(func=cmd_train)
 
     b = sub.add_parser("blend", help="blend a fine-tuned network with the weights it started from (WiSE-FT)")
@@ -606,6 +633,15 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
     q.add_argument("--every", type=_positive, default=2, help="use every n-th scan of each bag")
     q.set_defaults(func=cmd_quantize)
+
+    n = sub.add_parser("norm-stats", help="BatchNorm statistics for non-repetitive (Livox-like) scans, saved beside "
+                                          "the weights")
+    n.add_argument("bags", nargs="+", help="bags of a non-repetitive sensor, or folders of bags (the training split, "
+                                           "e.g. data/gpu_train/*/Mid-360/train; never the evaluation bags); other "
+                                           "sensors' scans are skipped")
+    n.add_argument("--weights", default="", help="weights file (\"\": the shipped ones)")
+    n.add_argument("--every", type=_positive, default=1, help="use every n-th scan of each bag")
+    n.set_defaults(func=cmd_norm_stats)
 
     r = sub.add_parser("replay",
                        help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")

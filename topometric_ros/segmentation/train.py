@@ -1,20 +1,21 @@
 """Train the range-image network from labelled bags (``topometric train``).
 
 Scans are projected once into a cache (data.py). Each step takes random azimuth crops of random scans of one
-sensor model (every model an equal share of the steps; on a GPU the cache sits in its memory and the crops are
-cut there), augments them (yaw = azimuth roll, mirror, sensor height and tilt jitter, range noise, point dropout,
-intensity scale / absence) and minimises weighted cross entropy + Lovász-softmax. Crops are trained with
-zero azimuth padding (their ends do not meet); validation and inference use whole scans with circular
-padding. With validation bags the epoch of best validation mIoU (paper classes) is saved, else the last
-(test bags are never read). ``max_minutes`` bounds the run: the cosine learning-rate decay then follows
-max(step fraction, time fraction) and training stops cleanly when the time is up.
+sensor model (every model an equal share of the steps unless ``shares`` sets some; on a GPU the cache sits in
+its memory and the crops are cut there), augments them (yaw = azimuth roll, mirror, sensor height and tilt
+jitter, range noise, point dropout, intensity scale / absence) and minimises weighted cross entropy +
+Lovász-softmax. Crops are trained with zero azimuth padding (their ends do not meet); validation and inference
+use whole scans with circular padding. With validation bags the epoch of best validation mIoU (paper classes,
+the mean over sensor models) is saved, else the last (test bags are never read). ``max_minutes`` bounds the
+run: the cosine learning-rate decay then follows max(step fraction, time fraction) and training stops cleanly
+when the time is up.
 """
 from __future__ import annotations
 
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -55,6 +56,7 @@ class TrainConfig:
     max_dropout: float = 0.05  # up to this fraction of points removed
     no_intensity: float = 0.1  # probability a crop has no intensity (clouds without the field)
     max_minutes: float = 0.0  # min, wall-clock budget of the training loop (0 = none; epochs bound it)
+    shares: dict = field(default_factory=dict)  # sensor model -> its share of the batches (0..1); the rest equal
 
 
 def class_weights(labels: np.ndarray, num_classes: int = C.NUM_CLASSES, cap: float = 10.0) -> np.ndarray:
@@ -102,18 +104,35 @@ class Stratum:
     images: np.ndarray  # (n,) indices of this sensor's images in the group
 
 
-def sensor_strata(groups: Sequence[dict]) -> tuple[list[Stratum], np.ndarray]:
+def sensor_strata(groups: Sequence[dict], shares: dict | None = None) -> tuple[list[Stratum], np.ndarray]:
     """The (group, sensor) strata of the cache and each one's chance per batch: every sensor model gets an
     equal share, split over its strata by image count. (A share per image shape would give the ten Ouster
     models, one 32 x 1024 shape, one share together and a VLP-16 one alone; and a non-repetitive scan's
-    image width follows its point count, so the Mid-360 fills several groups, some of one odd-width scan.)"""
+    image width follows its point count, so the Mid-360 fills several groups, some of one odd-width scan.)
+    ``shares``: sensor model -> its own share of the batches (0..1); the other models split the rest equally.
+    ValueError for a model not in the cache, shares over 1, or named shares of 1 with other models left."""
     strata = [Stratum(i, str(s), np.flatnonzero(g["sensor"] == s))
               for i, g in enumerate(groups) for s in np.unique(g["sensor"])]
     per_sensor: dict[str, int] = {}
     for st in strata:
         per_sensor[st.sensor] = per_sensor.get(st.sensor, 0) + len(st.images)
-    p = np.array([len(st.images) / per_sensor[st.sensor] for st in strata])
+    model_share = _model_shares(sorted(per_sensor), shares or {})
+    p = np.array([model_share[st.sensor] * len(st.images) / per_sensor[st.sensor] for st in strata])
     return strata, p / p.sum()
+
+
+def _model_shares(models: Sequence[str], shares: dict) -> dict:
+    """Each sensor model's share of the batches: the named ones as given, the rest split equally."""
+    unknown = sorted(set(shares) - set(models))
+    if unknown:
+        raise ValueError(f"--share names sensor model(s) not in the training bags: {', '.join(unknown)} "
+                         f"(they hold {', '.join(models)})")
+    named, rest = sum(shares.values()), [m for m in models if m not in shares]
+    if any(not 0 <= v <= 1 for v in shares.values()) or named > 1 + 1e-9 or (rest and named >= 1 - 1e-9) \
+            or (not rest and abs(named - 1) > 1e-9):
+        raise ValueError(f"--share: each share must be in 0..1, the named ones {named:g} in all, leaving more than "
+                         f"0 for the {len(rest)} other model(s) (or exactly 1 when every model is named)")
+    return {m: shares.get(m, (1 - named) / max(len(rest), 1)) for m in models}
 
 
 def strata_summary(groups: Sequence[dict], strata: Sequence[Stratum], chances: np.ndarray) -> str:
@@ -206,21 +225,33 @@ def training_device(name: str) -> torch.device:
 
 
 @torch.inference_mode()
-def evaluate_cache(model: RangeNet, groups: Sequence[dict], batch: int = 4) -> np.ndarray:
-    """Confusion matrix of the model on whole cached images of every shape group (circular padding), on the
-    model's device."""
+def evaluate_cache(model: RangeNet, groups: Sequence[dict], batch: int = 4) -> dict[str, np.ndarray]:
+    """Confusion matrix per sensor model of the model on whole cached images of every shape group (circular
+    padding), on the model's device."""
     model.eval().set_circular(True)
     dev = next(model.parameters()).device
-    conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+    conf: dict[str, np.ndarray] = {}
     for g in groups:
-        images, labels = g["images"], g["labels"]
+        images, labels, sensors = g["images"], g["labels"], np.asarray(g["sensor"])
         for i in range(0, len(images), batch):
             x = torch.from_numpy(images[i:i + batch].astype(np.float32)).to(dev)
             y = labels[i:i + batch]
             inp = network_input(x[:, :3], x[:, 3:4], torch.from_numpy(y != 255).to(dev))
             pred = model(inp).argmax(1).cpu().numpy()
-            conf += confusion(y, pred)
+            for name in np.unique(sensors[i:i + batch]):
+                on = sensors[i:i + batch] == name
+                conf[str(name)] = conf.get(str(name), 0) + confusion(y[on], pred[on])
     return conf
+
+
+def validation_entry(conf: dict[str, np.ndarray]) -> dict:
+    """An epoch's validation record from per-sensor confusion matrices: ``val_miou``, the mean over sensor models
+    of each one's mIoU (paper classes; the goal is per sensor, and pooled pixels would let the 128-beam models
+    outweigh a 16-beam one eight to one), ``val_miou_by_sensor``, and ``val_iou`` per class of the pooled pixels."""
+    by_sensor = {name: round(miou(c), 4) for name, c in sorted(conf.items())}
+    pooled = sum(conf.values())
+    return {"val_miou": round(float(np.mean(list(by_sensor.values()))), 4), "val_miou_by_sensor": by_sensor,
+            "val_iou": {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(pooled))}}
 
 
 def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags: Sequence[str], command: str,
@@ -243,7 +274,7 @@ def model_card(spec: ModelSpec, cfg: TrainConfig, bags: Sequence[str], val_bags:
                      "scans": n_scans, "seed": cfg.seed, "config": asdict(cfg), "elapsed_s": round(elapsed_s, 1),
                      "selected_epoch": last.get("epoch", 0), "init": init,
                      "torch": str(torch.__version__), "history": history},
-        "metrics": {"val": {k: last[k] for k in ("val_miou", "val_iou") if k in last}},
+        "metrics": {"val": {k: last[k] for k in ("val_miou", "val_miou_by_sensor", "val_iou") if k in last}},
     }
 
 
@@ -281,7 +312,7 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     val = (load_or_build_cache(val_bags, cache_dir, cfg.val_every, progress=progress, workers=cfg.workers)
            if val_bags else None)
     groups = list(data.values())
-    strata = sensor_strata(groups)
+    strata = sensor_strata(groups, cfg.shares)
     if progress:
         tqdm.write(strata_summary(groups, *strata))
     val_groups = list(val.values()) if val is not None else None
@@ -378,9 +409,7 @@ def _train_loop(model: RangeNet, weights: torch.Tensor, groups: Sequence[dict], 
                  "train_miou": round(miou(conf.cpu().numpy()), 4),
                  "lr": opt.param_groups[0]["lr"], "seconds": round(time.perf_counter() - te, 1)}
         if val_groups is not None:
-            vconf = evaluate_cache(model, val_groups)
-            entry["val_miou"] = round(miou(vconf), 4)
-            entry["val_iou"] = {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(vconf))}
+            entry.update(validation_entry(evaluate_cache(model, val_groups)))
             if entry["val_miou"] >= best:
                 best = entry["val_miou"]
                 best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
