@@ -39,7 +39,7 @@ def test_local_and_ray_give_the_same_results_and_name_each_failure(short_bag, tm
 def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped_network(short_bag, tmp_path):
     config = load_config(overrides={"segmentation.mode": "network"})
     weights = {name: path.read_bytes() for name, path in weights_files(config).items()}
-    assert set(weights) == {"weights", "int8"}  # the int8 activation ranges travel with the weights
+    assert set(weights) == {"weights", "int8", "norm"}  # the files beside the weights travel with them
     key = {"bag": bag_digest(short_bag), "config": config_digest(config), "weights": network_digest(config)}
     task = BagTask(str(short_bag), short_bag.name, config, key)
     ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
@@ -56,6 +56,9 @@ def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped
     ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
                                       shared={"weights": {**weights, "int8": weights["int8"] + b" "}})
     assert result is None and "do not hash to" in error
+    ((_, result, error),) = run_tasks(audit_bag, [task], engine="ray", workers=2, progress=False,
+                                      shared={"weights": {k: v for k, v in weights.items() if k != "norm"}})
+    assert result is None and "do not hash to" in error  # statistics left behind: not the network of the key
     # in-process: the file itself, its digest checked
     bad = replace(task, key={**key, "weights": "0" * 64})
     ((_, result, error),) = run_tasks(audit_bag, [bad], engine="local", progress=False)

@@ -8,13 +8,14 @@ half-written and workers need no write access to OUT.
 
 Cache: a bag's manifest holds its key, (bag digest: sha256 over the bag's files' names and bytes; config
 digest: sha256 of the resolved config as canonical JSON, segmentation.weights and window.pipelined left out;
-weights digest: sha256 of the weights file and its int8 ranges when the network segments; the replay options). A bag whose key
+weights digest: sha256 of the weights file and the files beside it (int8 ranges, non-repetitive BatchNorm
+statistics) when the network segments; the replay options). A bag whose key
 is unchanged is not run again; a bag whose task failed (an exception, a worker that died) has no key and is
 run again by the next audit. A bag that replays but processes nothing or breaks off (``summary['error']``
 / ``summary['no_scans']``, exit 1 of ``topometric replay``) is a failed bag with that reason, and is cached
 like any other result (the same bytes fail the same way; ``--force`` runs everything again).
 
-Weights: with Ray the bytes of the weights file (and its int8 ranges) are put in the object store once and
+Weights: with Ray the bytes of the weights file (and the files beside it) are put in the object store once and
 every task checks their sha256 against the digest of the key before using them (a copy in the worker's temp
 folder, named by digest).
 
@@ -127,15 +128,17 @@ def config_digest(config: Config) -> str:
 
 def weights_files(config: Config) -> dict[str, Path]:
     """The files of the network a replay with ``config`` loads: {"weights": the weights, "int8": their int8
-    activation ranges beside them when there} ({} without the network)."""
+    activation ranges, "norm": their non-repetitive BatchNorm statistics, each beside them when there} ({}
+    without the network)."""
     if config.segmentation.mode != "network":
         return {}
     from .segmentation.checkpoint import SHIPPED
+    from .segmentation.norm_stats import norm_path
     from .segmentation.quantize import ranges_path
 
     weights = Path(config.segmentation.weights) if config.segmentation.weights else SHIPPED
-    ranges = ranges_path(weights)
-    return {"weights": weights, **({"int8": ranges} if ranges.is_file() else {})}
+    beside = {"int8": ranges_path(weights), "norm": norm_path(weights)}
+    return {"weights": weights, **{name: path for name, path in beside.items() if path.is_file()}}
 
 
 def weights_digest(files: dict[str, bytes]) -> str | None:
@@ -178,7 +181,7 @@ def audit_bag(task: BagTask, weights: dict[str, bytes] | None = None) -> dict:
                 raise ValueError(f"the weights shipped to this worker do not hash to {want[:12]}…")
             config = replace(config, segmentation=replace(config.segmentation, weights=str(_weights_copy(weights, want))))
         elif weights_digest(_read(weights_files(config))) != want:
-            raise ValueError(f"{weights_files(config)['weights']} or its int8 ranges changed since the audit "
+            raise ValueError(f"{weights_files(config)['weights']} or the files beside it changed since the audit "
                              f"started (sha256 is not {want[:12]}…)")
     # one bag per CPU: the bag's per-scan stages run one after the other (window.pipelined gives the same
     # windows, in two threads; here the parallelism is across bags)
@@ -220,10 +223,11 @@ def _alive(pid: int) -> bool:
 def _weights_copy(files: dict[str, bytes], digest: str) -> Path:
     """The shipped network's files in this machine's temp folder, in a folder named by their digest (written
     once); returns the weights' path."""
+    from .segmentation.norm_stats import NORM_NAME
     from .segmentation.quantize import RANGES_NAME
 
     folder = Path(tempfile.gettempdir()) / "topometric-weights" / digest
-    paths = {"weights": folder / "rangenet.pt", "int8": folder / RANGES_NAME}
+    paths = {"weights": folder / "rangenet.pt", "int8": folder / RANGES_NAME, "norm": folder / NORM_NAME}
     if weights_digest({n: paths[n].read_bytes() for n in files if paths[n].is_file()}) != digest:
         folder.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():

@@ -29,6 +29,7 @@ from .projection import CHANNELS, Projection, beam_stride, checked, nearest_stri
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
 from .floor import lift_off_floor
 from .knn import knn_vote
+from .norm_stats import load_stats, with_stats
 from .objects import unify_objects
 from .quantize import cpu_has_vnni, load_ranges, quantize
 
@@ -203,12 +204,15 @@ class Segmenter:
     non-floor neighbours' label (floor.lift_off_floor). ``object_gap`` (> 0, m): then desk and chair points
     joined within that gap take their object's majority label (objects.unify_objects), last. The constructor's
     defaults leave the vote, the check and the objects off; :meth:`from_config` takes the config's (all on).
+    ``pattern_stats`` (norm_stats.py): BatchNorm statistics the network uses for non-repetitive scans (grids
+    with per-point azimuths); every other scan runs with the weights' own. ``self.pattern_stats`` says whether
+    they are in use.
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
                  knn_distance: float = 0.5, int8_ranges: dict | None = None, floor_band: float = 0.0,
-                 object_gap: float = 0.0):
+                 object_gap: float = 0.0, pattern_stats: dict | None = None):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
@@ -225,14 +229,18 @@ class Segmenter:
         self.max_beams = int(max_beams)
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
+        self.pattern_stats = pattern_stats is not None
+        patterned = with_stats(model, pattern_stats) if pattern_stats is not None else None
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         self.scorer = Scorer(self.model, passes).to(self.device).eval()
+        self._scorers = {False: self.scorer, True: self.scorer if patterned is None else
+                         Scorer(fold_batchnorm(patterned).to(self.device), passes).to(self.device).eval()}
         if self.device.type == "cpu":
             torch.set_num_threads(threads)  # process-wide: torch has one CPU thread pool
         self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
         self._int8_ranges = int8_ranges if self.backend == "onnxruntime" and passes == 1 else None
         self.precision = "float32" if self._int8_ranges is None else "int8"
-        self._onnx: dict[tuple[int, int], _OnnxRunner] = {}
+        self._onnx: dict[tuple[int, int, bool], _OnnxRunner] = {}
         if self.backend == "onnxruntime":
             self._runner(*PROBE_SHAPE)  # fail over to eager now, not on the first scan
 
@@ -241,9 +249,13 @@ class Segmenter:
         """The network of ``cfg.weights`` ("" = the shipped weights) on ``cfg.device`` with ``cfg.threads``."""
         path = Path(cfg.weights) if cfg.weights else SHIPPED
         card, state = load_weights(path)
+        digest = state_digest(state)
+        stats, why = load_stats(path, digest, state)
+        if stats is None:
+            log.info("segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
-                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, state), cfg.floor_band,
-                   cfg.object_gap)
+                   cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, digest), cfg.floor_band,
+                   cfg.object_gap, stats)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -260,10 +272,10 @@ class Segmenter:
         out: list = [None] * len(prepared)
         shapes: dict[tuple, list[int]] = {}
         for i, (image, _, _) in enumerate(prepared):
-            shapes.setdefault(image.shape[1:], []).append(i)
-        for members in shapes.values():
+            shapes.setdefault((*image.shape[1:], scans[i][1].azimuth is not None), []).append(i)
+        for (*_, non_repetitive), members in shapes.items():
             images = np.concatenate([prepared[i][0] for i in members])
-            labels, conf = self._run(images)
+            labels, conf = self._run(images, non_repetitive)
             start = 0
             for i in members:
                 _, proj, source = prepared[i]
@@ -290,28 +302,30 @@ class Segmenter:
         images, proj = project(points[keep], sub, None if intensity is None else np.asarray(intensity)[keep])
         return images, proj, nearest_strided(points, grid, keep, stride)
 
-    def _run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images."""
+    def _run(self, images: np.ndarray, non_repetitive: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(B, H, W) uint8 labels and float32 confidence of (B, 6, H, W) range images (of a non-repetitive
+        scan: with its BatchNorm statistics when there are some)."""
         if self.backend == "onnxruntime":
-            runner = self._runner(images.shape[2], images.shape[3])
+            runner = self._runner(images.shape[2], images.shape[3], non_repetitive)
             if runner is not None:
                 return runner(images)
-        return self._run_eager(images)
+        return self._run_eager(images, non_repetitive)
 
-    def _runner(self, height: int, width: int) -> "_OnnxRunner | None":
-        """The ONNX Runtime export for images of this shape (made and checked once); on failure the
-        Segmenter switches to eager PyTorch with a warning and returns None."""
-        key = (int(height), int(width))
+    def _runner(self, height: int, width: int, non_repetitive: bool = False) -> "_OnnxRunner | None":
+        """The ONNX Runtime export for images of this shape (and pattern) (made and checked once); on failure
+        the Segmenter switches to eager PyTorch with a warning and returns None."""
+        key = (int(height), int(width), bool(non_repetitive) and self.pattern_stats)
+        scorer = self._scorers[key[2]]
         if key not in self._onnx and self.precision == "int8":
             try:
-                self._onnx[key] = _OnnxRunner(self.scorer, *key, self.threads, self._int8_ranges)
+                self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads, self._int8_ranges)
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
                 log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
                             _first_line(e))
                 self.precision, self._onnx = "float32", {}
         if key not in self._onnx:
             try:
-                self._onnx[key] = _OnnxRunner(self.scorer, *key, self.threads)
+                self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)
             except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
                 log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
                             type(e).__name__, _first_line(e))
@@ -320,16 +334,16 @@ class Segmenter:
         return self._onnx[key]
 
     @torch.inference_mode()
-    def _run_eager(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _run_eager(self, images: np.ndarray, non_repetitive: bool = False) -> tuple[np.ndarray, np.ndarray]:
         x = torch.from_numpy(np.ascontiguousarray(images, np.float32)).to(self.device, non_blocking=True)
-        return read_out(self.scorer(x).float().cpu().numpy())
+        return read_out(self._scorers[bool(non_repetitive)](x).float().cpu().numpy())
 
 
 def _first_line(e: Exception) -> str:
     return str(e).splitlines()[0] if str(e) else ""
 
 
-def _int8_ranges(cfg: SegmentationConfig, weights: Path, state: dict) -> dict | None:
+def _int8_ranges(cfg: SegmentationConfig, weights: Path, digest: str) -> dict | None:
     """The activation ranges to run the network int8 with (segmentation.precision: int8, or auto on a CPU
     with VNNI), else None; why an int8 request falls back to float32 is logged (a warning when int8 was
     asked for by name)."""
@@ -340,7 +354,7 @@ def _int8_ranges(cfg: SegmentationConfig, weights: Path, state: dict) -> dict | 
     elif cfg.passes != 1:
         ranges, why = None, "int8 runs one pass only (segmentation.passes 1)"
     else:
-        ranges, why = load_ranges(weights, state_digest(state))
+        ranges, why = load_ranges(weights, digest)
     if ranges is None:
         (log.warning if cfg.precision == "int8" else log.info)("segmentation: float32 network: %s", why)
     return ranges

@@ -1,0 +1,137 @@
+"""BatchNorm statistics for non-repetitive scans (segmentation/norm_stats.py) and their use by the Segmenter."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from topometric_ros import classes as C
+from topometric_ros.config import SegmentationConfig
+from topometric_ros.segmentation.checkpoint import SHIPPED, build_model, load_weights, save_weights, state_digest
+from topometric_ros.segmentation.infer import Segmenter
+from topometric_ros.segmentation.metrics import confusion, miou
+from topometric_ros.segmentation.model import ModelSpec, RangeNet
+from topometric_ros.segmentation.norm_stats import (NORM_NAME, estimate, load_stats, norm_path, with_stats,
+                                                    write_stats)
+from topometric_ros.segmentation.projection import checked, project
+from topometric_ros.sim.frames import simulated_frames
+
+
+@pytest.fixture(scope="module")
+def mid360():
+    frames, _ = simulated_frames("office1", 2, seed=11, sensor="Mid-360")
+    return frames
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    card, state = load_weights(SHIPPED)
+    return card, state
+
+
+def _images(frames):
+    return [project(*checked(f.points, f.ring, f.intensity), f.intensity)[0] for f in frames]
+
+
+def test_estimated_statistics_are_the_average_of_each_scans_own_batch_statistics(mid360):
+    """The first BatchNorm's input does not depend on any statistics: its running mean and variance must be the
+    plain average over the scans of each scan's channel mean and (unbiased) variance of that input."""
+    torch.manual_seed(0)
+    model = RangeNet(ModelSpec()).eval()
+    images = _images(mid360)
+    first = next(m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    seen = []
+    hook = first.register_forward_hook(lambda m, inp, out: seen.append(inp[0].detach()))
+    with torch.no_grad():
+        for im in images:
+            model(torch.from_numpy(im))
+    hook.remove()
+    name = next(k for k, m in model.named_modules() if m is first)
+    stats, n = estimate(model, images)
+    assert n == len(images) == 2
+    mean = torch.stack([x.mean((0, 2, 3)) for x in seen]).mean(0)
+    var = torch.stack([x.transpose(0, 1).reshape(x.shape[1], -1).var(1, unbiased=True) for x in seen]).mean(0)
+    np.testing.assert_allclose(stats[f"{name}.running_mean"], mean.numpy(), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(stats[f"{name}.running_var"], var.numpy(), rtol=1e-4, atol=1e-5)
+    assert first.running_mean.abs().sum() == 0  # the model given is left as it was (a fresh net: zeros)
+    expected = {k for k in model.state_dict() if k.endswith(("running_mean", "running_var"))}
+    assert set(stats) == expected
+    swapped = with_stats(model, stats)
+    assert torch.equal(swapped.state_dict()[f"{name}.running_mean"], torch.tensor(stats[f"{name}.running_mean"]))
+
+
+def test_statistics_are_refused_unless_they_were_made_for_these_weights(tmp_path, shipped):
+    card, state = shipped
+    weights = save_weights(build_model(card, state), card, tmp_path)
+    digest = state_digest(state)
+    assert load_stats(weights, digest, state)[0] is None
+    assert "make them with topometric norm-stats" in load_stats(weights, digest, state)[1]
+    stats = {k: v.tolist() for k, v in state.items() if k.endswith(("running_mean", "running_var"))}
+    path = write_stats(stats, weights, digest, "test", 3)
+    assert path == norm_path(weights) == tmp_path / NORM_NAME
+    assert load_stats(weights, digest, state) == (stats, "")
+    assert "estimated for other weights" in load_stats(weights, "0" * 64, state)[1]
+    doc = json.loads(path.read_text())
+    doc["statistics"].pop(next(iter(stats)))
+    path.write_text(json.dumps(doc))
+    assert "do not match the network" in load_stats(weights, digest, state)[1]
+    path.write_text("{")
+    assert "not readable JSON" in load_stats(weights, digest, state)[1]
+
+
+def test_the_segmenter_uses_the_statistics_for_non_repetitive_scans_only(mid360, shipped):
+    card, state = shipped
+    stats, _ = estimate(build_model(card, state), _images(mid360))
+    plain = Segmenter(build_model(card, state), card, backend="eager")
+    patterned = Segmenter(build_model(card, state), card, backend="eager", pattern_stats=stats)
+    swapped = Segmenter(with_stats(build_model(card, state), stats), card, backend="eager")
+    assert patterned.pattern_stats and not plain.pattern_stats
+    spinning, _ = simulated_frames("office1", 1, seed=11, sensor="VLP-16")
+    for f in spinning:  # a spinning scan: the weights' own statistics, labels and confidence unchanged
+        for a, b in zip(patterned.predict(f.points, f.ring, f.intensity), plain.predict(f.points, f.ring, f.intensity)):
+            np.testing.assert_array_equal(a, b)
+    f = mid360[0]
+    got = patterned.predict(f.points, f.ring, f.intensity)
+    np.testing.assert_array_equal(got[0], swapped.predict(f.points, f.ring, f.intensity)[0])
+    assert (got[0] != plain.predict(f.points, f.ring, f.intensity)[0]).mean() > 0.05
+    mixed = patterned.predict_batch([(f.points, f.ring, f.intensity), (spinning[0].points, spinning[0].ring, None)])
+    np.testing.assert_array_equal(mixed[0][0], got[0])  # one batch of both kinds: each its own statistics
+
+
+def test_the_shipped_statistics_load_and_lift_the_mid360_over_the_shared_ones(mid360):
+    """The shipped weights come with statistics for non-repetitive scans (estimated on the Mid-360's training
+    layouts); on these simulated Mid-360 scans they beat the shared statistics by a wide margin."""
+    with_file = Segmenter.from_config(SegmentationConfig(precision="float32", knn=0, floor_band=0, object_gap=0))
+    assert with_file.pattern_stats
+    card, state = load_weights(SHIPPED)
+    shared = Segmenter(build_model(card, state), card)
+    scores = []
+    for seg in (with_file, shared):
+        conf = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
+        for f in mid360:
+            conf += confusion(f.labels, seg.predict(f.points, f.ring, f.intensity)[0])
+        scores.append(miou(conf))
+    assert scores[0] > scores[1] + 0.05, scores
+
+
+def test_norm_stats_command_writes_the_file_and_refuses_bags_without_a_non_repetitive_scan(tmp_path, shipped):
+    card, state = shipped
+    weights = save_weights(build_model(card, state), card, tmp_path / "w")
+    for sensor in ("Mid-360", "VLP-16"):
+        res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "simulate", "--sensor", sensor, "--scene",
+                              "office1", "--frames", "2", "--out", str(tmp_path / sensor)], capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "norm-stats", str(tmp_path / "VLP-16"),
+                          "--weights", str(weights)], capture_output=True, text=True)
+    assert res.returncode == 2 and "no non-repetitive scan" in res.stderr and "Traceback" not in res.stderr
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "norm-stats", str(tmp_path / "Mid-360"),
+                          str(tmp_path / "VLP-16"), "--weights", str(weights)], capture_output=True, text=True)
+    assert res.returncode == 0 and "of 2 non-repetitive range images from 2 bag(s)" in res.stdout, res.stderr
+    doc = json.loads((tmp_path / "w" / NORM_NAME).read_text())
+    assert doc["images"] == 2 and doc["state_sha256"] == state_digest(state)
+    assert doc["command"].startswith("topometric norm-stats ")
+    assert Segmenter.from_config(SegmentationConfig(weights=str(weights))).pattern_stats
