@@ -177,20 +177,21 @@ def test_choose_sigma_can_hold_every_group_to_the_target():
 
 
 def test_network_replays_are_keyed_by_the_network_files_contents(tmp_path):
-    """The weights and their int8 activation ranges: other bytes in either, another key (a cached replay
-    made with the old network is not reused)."""
+    """The weights, their int8 activation ranges and their non-repetitive statistics: other bytes in any,
+    another key (a cached replay made with the old network is not reused)."""
     import shutil
 
     from topometric_ros.audit import network_digest
     from topometric_ros.segmentation.checkpoint import SHIPPED
+    from topometric_ros.segmentation.norm_stats import NORM_NAME
     from topometric_ros.segmentation.quantize import RANGES_NAME
 
     assert network_digest(load_config(overrides={"segmentation.mode": "labels"})) is None
     shipped = network_digest(load_config(overrides={"segmentation.mode": "network"}))
-    for changed in ("rangenet.pt", RANGES_NAME):
+    for changed in ("rangenet.pt", RANGES_NAME, NORM_NAME):
         folder = tmp_path / changed
         folder.mkdir()
-        for name in ("rangenet.pt", RANGES_NAME):
+        for name in ("rangenet.pt", RANGES_NAME, NORM_NAME):
             shutil.copy(SHIPPED.parent / name, folder / name)
         config = load_config(overrides={"segmentation.mode": "network", "segmentation.weights": str(folder / "rangenet.pt")})
         assert network_digest(config) == shipped  # same bytes elsewhere: the same network
