@@ -43,7 +43,7 @@ def test_the_shipped_ranges_fit_the_shipped_weights_and_no_others(tmp_path):
     doc = json.loads((SHIPPED.parent / RANGES_NAME).read_text())
     assert doc["command"].startswith("topometric quantize ") and doc["images"] > 100
     ranges, why = load_ranges(SHIPPED, "0" * 64)
-    assert ranges is None and "calibrated for other weights" in why
+    assert ranges is None and "made for other weights" in why
     ranges, why = load_ranges(tmp_path / "rangenet.pt", state_digest(state))
     assert ranges is None and "topometric quantize" in why
 

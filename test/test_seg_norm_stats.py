@@ -15,8 +15,8 @@ from topometric_ros.segmentation.checkpoint import SHIPPED, build_model, load_we
 from topometric_ros.segmentation.infer import Segmenter
 from topometric_ros.segmentation.metrics import confusion, miou
 from topometric_ros.segmentation.model import ModelSpec, RangeNet
-from topometric_ros.segmentation.norm_stats import (NORM_NAME, estimate, load_stats, norm_path, with_stats,
-                                                    write_stats)
+from topometric_ros.segmentation.norm_stats import NORM_NAME, estimate, load_stats, with_stats, write_stats
+from topometric_ros.grid import ScanGrid, azimuth_cells
 from topometric_ros.segmentation.projection import checked, project
 from topometric_ros.sim.frames import simulated_frames
 
@@ -72,9 +72,9 @@ def test_statistics_are_refused_unless_they_were_made_for_these_weights(tmp_path
     assert "make them with topometric norm-stats" in load_stats(weights, digest, state)[1]
     stats = {k: v.tolist() for k, v in state.items() if k.endswith(("running_mean", "running_var"))}
     path = write_stats(stats, weights, digest, "test", 3)
-    assert path == norm_path(weights) == tmp_path / NORM_NAME
+    assert path == tmp_path / NORM_NAME
     assert load_stats(weights, digest, state) == (stats, "")
-    assert "estimated for other weights" in load_stats(weights, "0" * 64, state)[1]
+    assert "made for other weights" in load_stats(weights, "0" * 64, state)[1]
     doc = json.loads(path.read_text())
     doc["statistics"].pop(next(iter(stats)))
     path.write_text(json.dumps(doc))
@@ -89,7 +89,7 @@ def test_the_segmenter_uses_the_statistics_for_non_repetitive_scans_only(mid360,
     plain = Segmenter(build_model(card, state), card, backend="eager")
     patterned = Segmenter(build_model(card, state), card, backend="eager", pattern_stats=stats)
     swapped = Segmenter(with_stats(build_model(card, state), stats), card, backend="eager")
-    assert patterned.pattern_stats and not plain.pattern_stats
+    assert patterned.has_pattern_stats and not plain.has_pattern_stats
     spinning, _ = simulated_frames("office1", 1, seed=11, sensor="VLP-16")
     for f in spinning:  # a spinning scan: the weights' own statistics, labels and confidence unchanged
         for a, b in zip(patterned.predict(f.points, f.ring, f.intensity), plain.predict(f.points, f.ring, f.intensity)):
@@ -98,15 +98,40 @@ def test_the_segmenter_uses_the_statistics_for_non_repetitive_scans_only(mid360,
     got = patterned.predict(f.points, f.ring, f.intensity)
     np.testing.assert_array_equal(got[0], swapped.predict(f.points, f.ring, f.intensity)[0])
     assert (got[0] != plain.predict(f.points, f.ring, f.intensity)[0]).mean() > 0.05
-    mixed = patterned.predict_batch([(f.points, f.ring, f.intensity), (spinning[0].points, spinning[0].ring, None)])
-    np.testing.assert_array_equal(mixed[0][0], got[0])  # one batch of both kinds: each its own statistics
+    # the same points on a grid without per-point azimuths (as a spinning sensor's) and of the same image shape:
+    # one batch of both kinds, each with its own statistics
+    grid = checked(f.points, f.ring)[1]
+    cols = azimuth_cells(grid.azimuth, 640)
+    as_spinning = ScanGrid(grid.row, cols.astype(grid.col.dtype), grid.height, 640, grid.elevation_deg, "test")
+    assert project(f.points, grid)[0].shape == project(f.points, as_spinning)[0].shape == (1, 6, 32, 640)
+    mixed = patterned.predict_batch([(f.points, grid, f.intensity), (f.points, as_spinning, f.intensity)])
+    np.testing.assert_array_equal(mixed[0][0], got[0])
+    np.testing.assert_array_equal(mixed[1][0], plain.predict(f.points, as_spinning, f.intensity)[0])
+
+
+def test_int8_with_the_statistics_leaves_spinning_scans_as_they_were_and_follows_float32_on_the_mid360(mid360):
+    from topometric_ros.segmentation.quantize import load_ranges
+
+    card, state = load_weights(SHIPPED)
+    ranges, why = load_ranges(SHIPPED, state_digest(state))
+    assert why == ""
+    stats, _ = load_stats(SHIPPED, state_digest(state), state)
+    int8 = Segmenter(build_model(card, state), card, int8_ranges=ranges, pattern_stats=stats)
+    int8_shared = Segmenter(build_model(card, state), card, int8_ranges=ranges)
+    float32 = Segmenter(build_model(card, state), card, pattern_stats=stats)
+    spinning, _ = simulated_frames("office1", 1, seed=11, sensor="VLP-16")
+    f = spinning[0]
+    np.testing.assert_array_equal(int8.predict(f.points, f.ring)[0], int8_shared.predict(f.points, f.ring)[0])
+    f = mid360[0]
+    agree = (int8.predict(f.points, f.ring, f.intensity)[0] == float32.predict(f.points, f.ring, f.intensity)[0]).mean()
+    assert int8.precision == "int8" and not int8._pattern_float32 and agree > 0.95, agree
 
 
 def test_the_shipped_statistics_load_and_lift_the_mid360_over_the_shared_ones(mid360):
     """The shipped weights come with statistics for non-repetitive scans (estimated on the Mid-360's training
     layouts); on these simulated Mid-360 scans they beat the shared statistics by a wide margin."""
     with_file = Segmenter.from_config(SegmentationConfig(precision="float32", knn=0, floor_band=0, object_gap=0))
-    assert with_file.pattern_stats
+    assert with_file.has_pattern_stats
     card, state = load_weights(SHIPPED)
     shared = Segmenter(build_model(card, state), card)
     scores = []
@@ -130,8 +155,8 @@ def test_norm_stats_command_writes_the_file_and_refuses_bags_without_a_non_repet
     assert res.returncode == 2 and "no non-repetitive scan" in res.stderr and "Traceback" not in res.stderr
     res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "norm-stats", str(tmp_path / "Mid-360"),
                           str(tmp_path / "VLP-16"), "--weights", str(weights)], capture_output=True, text=True)
-    assert res.returncode == 0 and "of 2 non-repetitive range images from 2 bag(s)" in res.stdout, res.stderr
+    assert res.returncode == 0 and "of 2 non-repetitive range images from 1 of 2 bag(s)" in res.stdout, res.stderr
     doc = json.loads((tmp_path / "w" / NORM_NAME).read_text())
     assert doc["images"] == 2 and doc["state_sha256"] == state_digest(state)
     assert doc["command"].startswith("topometric norm-stats ")
-    assert Segmenter.from_config(SegmentationConfig(weights=str(weights))).pattern_stats
+    assert Segmenter.from_config(SegmentationConfig(weights=str(weights))).has_pattern_stats

@@ -133,12 +133,18 @@ def weights_files(config: Config) -> dict[str, Path]:
     if config.segmentation.mode != "network":
         return {}
     from .segmentation.checkpoint import SHIPPED
-    from .segmentation.norm_stats import norm_path
-    from .segmentation.quantize import ranges_path
 
     weights = Path(config.segmentation.weights) if config.segmentation.weights else SHIPPED
-    beside = {"int8": ranges_path(weights), "norm": norm_path(weights)}
+    beside = {name: weights.parent / file for name, file in _files_beside_weights().items()}
     return {"weights": weights, **{name: path for name, path in beside.items() if path.is_file()}}
+
+
+def _files_beside_weights() -> dict[str, str]:
+    """The network's files beside its weights, by the names weights_files gives them."""
+    from .segmentation.norm_stats import NORM_NAME
+    from .segmentation.quantize import RANGES_NAME
+
+    return {"int8": RANGES_NAME, "norm": NORM_NAME}
 
 
 def weights_digest(files: dict[str, bytes]) -> str | None:
@@ -223,11 +229,8 @@ def _alive(pid: int) -> bool:
 def _weights_copy(files: dict[str, bytes], digest: str) -> Path:
     """The shipped network's files in this machine's temp folder, in a folder named by their digest (written
     once); returns the weights' path."""
-    from .segmentation.norm_stats import NORM_NAME
-    from .segmentation.quantize import RANGES_NAME
-
     folder = Path(tempfile.gettempdir()) / "topometric-weights" / digest
-    paths = {"weights": folder / "rangenet.pt", "int8": folder / RANGES_NAME, "norm": folder / NORM_NAME}
+    paths = {"weights": folder / "rangenet.pt", **{name: folder / f for name, f in _files_beside_weights().items()}}
     if weights_digest({n: paths[n].read_bytes() for n in files if paths[n].is_file()}) != digest:
         folder.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():

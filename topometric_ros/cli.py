@@ -456,9 +456,10 @@ def cmd_norm_stats(args: argparse.Namespace) -> int:
     from .segmentation.norm_stats import make_stats
 
     bags = find_bags(args.bags)
-    path, images = make_stats(bags, args.weights or SHIPPED, args.every, args.command_line)
-    print(f"wrote {path} (BatchNorm statistics of {images} non-repetitive range images from {len(bags)} bag(s); "
-          f"the segmenter uses them for non-repetitive scans)")
+    path, images, used = make_stats(bags, args.weights or SHIPPED, args.every, args.command_line)
+    print(f"wrote {path}{'' if args.weights else ' (the shipped weights: their statistics replaced)'}: BatchNorm "
+          f"statistics of {images} non-repetitive range images from {used} of {len(bags)} bag(s); the segmenter "
+          f"uses them for non-repetitive scans")
     return 0
 
 

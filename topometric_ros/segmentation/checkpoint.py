@@ -125,6 +125,33 @@ def state_digest(state: dict) -> str:
     return h.hexdigest()
 
 
+def read_beside(weights: str | Path, name: str, fmt: int, key: str, state_sha256: str, what: str,
+                command: str) -> tuple[dict | None, str]:
+    """(the JSON document ``name`` beside ``weights``, "") when it is of format ``fmt``, holds a dict under ``key``
+    and was made for the weights whose tensors hash to ``state_sha256``; else (None, why not). ``what`` names
+    the file's content and ``command`` the command that makes it, for the reasons."""
+    path = Path(weights).parent / name
+    if not path.is_file():
+        return None, f"no {what} beside the weights ({name}; make them with {command})"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        return None, f"{path}: not readable JSON ({e})"
+    if not isinstance(doc, dict) or doc.get("format_version") != fmt or not isinstance(doc.get(key), dict):
+        return None, f"{path}: not a file of {what} of format {fmt}"
+    if doc.get("state_sha256") != state_sha256:
+        return None, f"{path} was made for other weights; run {command} for these"
+    return doc, ""
+
+
+def write_beside(weights: str | Path, name: str, doc: dict, indent: int | None = None) -> Path:
+    """Write the JSON document ``doc`` whole as ``name`` beside ``weights``; returns its path."""
+    path = Path(weights).parent / name
+    with written_whole(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=indent) + "\n")
+    return path
+
+
 def save_weights(model: RangeNet, card: dict, out: str | Path) -> Path:
     """OUT/rangenet.pt = {'model_card': card, 'state_dict': tensors, 'state_sha256': digest of the tensors};
     OUT/model_card.json = card + the file's sha256."""

@@ -29,7 +29,7 @@ from .projection import CHANNELS, Projection, beam_stride, checked, nearest_stri
 from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
 from .floor import lift_off_floor
 from .knn import knn_vote
-from .norm_stats import load_stats, with_stats
+from .norm_stats import NORM_NAME, load_stats, with_stats
 from .objects import unify_objects
 from .quantize import cpu_has_vnni, load_ranges, quantize
 
@@ -205,8 +205,8 @@ class Segmenter:
     joined within that gap take their object's majority label (objects.unify_objects), last. The constructor's
     defaults leave the vote, the check and the objects off; :meth:`from_config` takes the config's (all on).
     ``pattern_stats`` (norm_stats.py): BatchNorm statistics the network uses for non-repetitive scans (grids
-    with per-point azimuths); every other scan runs with the weights' own. ``self.pattern_stats`` says whether
-    they are in use.
+    with per-point azimuths); every other scan runs with the weights' own. ``self.has_pattern_stats`` says
+    whether there are some.
     """
 
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
@@ -229,7 +229,7 @@ class Segmenter:
         self.max_beams = int(max_beams)
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
-        self.pattern_stats = pattern_stats is not None
+        self.has_pattern_stats = pattern_stats is not None
         patterned = with_stats(model, pattern_stats) if pattern_stats is not None else None
         self.model = fold_batchnorm(model).to(self.device)  # same outputs, no BatchNorm passes
         self.scorer = Scorer(self.model, passes).to(self.device).eval()
@@ -241,6 +241,7 @@ class Segmenter:
         self._int8_ranges = int8_ranges if self.backend == "onnxruntime" and passes == 1 else None
         self.precision = "float32" if self._int8_ranges is None else "int8"
         self._onnx: dict[tuple[int, int, bool], _OnnxRunner] = {}
+        self._pattern_float32 = False  # the int8 check failed for non-repetitive scans: they run float32
         if self.backend == "onnxruntime":
             self._runner(*PROBE_SHAPE)  # fail over to eager now, not on the first scan
 
@@ -251,8 +252,9 @@ class Segmenter:
         card, state = load_weights(path)
         digest = state_digest(state)
         stats, why = load_stats(path, digest, state)
-        if stats is None:
-            log.info("segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
+        if stats is None:  # a file there but refused (other weights, damaged): said; none at all: other weights' way
+            (log.warning if (path.parent / NORM_NAME).is_file() else log.info)(
+                "segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
                    cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, digest), cfg.floor_band,
                    cfg.object_gap, stats)
@@ -314,15 +316,20 @@ class Segmenter:
     def _runner(self, height: int, width: int, non_repetitive: bool = False) -> "_OnnxRunner | None":
         """The ONNX Runtime export for images of this shape (and pattern) (made and checked once); on failure
         the Segmenter switches to eager PyTorch with a warning and returns None."""
-        key = (int(height), int(width), bool(non_repetitive) and self.pattern_stats)
+        key = (int(height), int(width), bool(non_repetitive) and self.has_pattern_stats)
         scorer = self._scorers[key[2]]
-        if key not in self._onnx and self.precision == "int8":
+        if key not in self._onnx and self.precision == "int8" and not (key[2] and self._pattern_float32):
             try:
                 self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads, self._int8_ranges)
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
-                log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
-                            _first_line(e))
-                self.precision, self._onnx = "float32", {}
+                if key[2]:  # the ranges were calibrated with the shared statistics: float32 for these scans alone
+                    log.warning("segmentation: int8 network unavailable for non-repetitive scans (%s: %s); float32 "
+                                "for them", type(e).__name__, _first_line(e))
+                    self._pattern_float32 = True
+                else:
+                    log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
+                                _first_line(e))
+                    self.precision, self._onnx = "float32", {}
         if key not in self._onnx:
             try:
                 self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)

@@ -10,7 +10,6 @@ other scan with the weights' own: spinning sensors are untouched.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Iterable
 
@@ -18,7 +17,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..reports import written_whole
 from .model import RangeNet
 
 NORM_NAME = "rangenet.norm.json"
@@ -27,15 +25,11 @@ PATTERN = "non_repetitive"  # the scans these statistics are for: grids with per
 STAT_KEYS = ("running_mean", "running_var")
 
 
-def norm_path(weights: str | Path) -> Path:
-    """Where the non-repetitive statistics of a weights file live: beside it."""
-    return Path(weights).parent / NORM_NAME
-
-
 def estimate(model: RangeNet, images: Iterable[np.ndarray]) -> tuple[dict[str, list], int]:
     """({BatchNorm buffer name: values}, images seen): the running mean and variance of every BatchNorm layer of
-    ``model`` over (k, 6, rows, cols) range images (projection.project's, the network's raw input), each layer's
-    plain average over the images (not a moving one). ``model`` is left as it was."""
+    ``model`` over scans given as their (k, 6, rows, cols) range images (projection.project's, the network's raw
+    input): each scan's batch statistics, averaged with the same weight per scan (not a moving average).
+    ``model`` is left as it was."""
     net = _copy(model)
     layers = [m for m in net.modules() if isinstance(m, nn.BatchNorm2d)]
     if not layers:
@@ -67,38 +61,31 @@ def with_stats(model: RangeNet, stats: dict[str, list]) -> RangeNet:
 
 
 def write_stats(stats: dict[str, list], weights: str | Path, state_sha256: str, command: str, images: int) -> Path:
-    """Save ``stats`` beside ``weights`` (:func:`norm_path`), tied to their tensors' digest; returns the path."""
-    path = norm_path(weights)
+    """Save ``stats`` beside ``weights`` (NORM_NAME), tied to their tensors' digest; returns the path."""
+    from .checkpoint import write_beside
+
     doc = {"format_version": FORMAT_VERSION, "pattern": PATTERN, "state_sha256": state_sha256, "images": images,
            "command": command, "statistics": stats}
-    with written_whole(path) as tmp:
-        tmp.write_text(json.dumps(doc) + "\n")
-    return path
+    return write_beside(weights, NORM_NAME, doc)
 
 
 def load_stats(weights: str | Path, state_sha256: str, keys: Iterable[str]) -> tuple[dict | None, str]:
     """(statistics, "") for the weights whose tensors hash to ``state_sha256`` and whose BatchNorm buffers are
-    ``keys``, or (None, why not)."""
-    path = norm_path(weights)
-    if not path.is_file():
-        return None, f"no non-repetitive statistics beside the weights ({path.name}; make them with topometric norm-stats)"
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        return None, f"{path}: not readable JSON ({e})"
-    if doc.get("format_version") != FORMAT_VERSION or not isinstance(doc.get("statistics"), dict):
-        return None, f"{path}: not a statistics file of format {FORMAT_VERSION}"
-    if doc.get("state_sha256") != state_sha256:
-        return None, f"{path} was estimated for other weights; run topometric norm-stats for these"
-    want = {k for k in keys if k.rsplit(".", 1)[-1] in STAT_KEYS}
-    if set(doc["statistics"]) != want:
-        return None, f"{path}: its layers do not match the network's BatchNorm layers"
+    among ``keys`` (a state dict's names), or (None, why not)."""
+    from .checkpoint import read_beside
+
+    doc, why = read_beside(weights, NORM_NAME, FORMAT_VERSION, "statistics", state_sha256, "non-repetitive statistics",
+                           "topometric norm-stats")
+    if doc is None:
+        return None, why
+    if set(doc["statistics"]) != {k for k in keys if k.rsplit(".", 1)[-1] in STAT_KEYS}:
+        return None, f"{Path(weights).parent / NORM_NAME}: its layers do not match the network's BatchNorm layers"
     return doc["statistics"], ""
 
 
-def make_stats(bags, weights: str | Path, every: int = 1, command: str = "") -> tuple[Path, int]:
+def make_stats(bags, weights: str | Path, every: int = 1, command: str = "") -> tuple[Path, int, int]:
     """Estimate the non-repetitive statistics of ``weights`` on every ``every``-th scan of ``bags`` (their
-    non-repetitive scans; others are skipped) and save them beside the weights: (path, images)."""
+    non-repetitive scans; others are skipped) and save them beside the weights: (path, images, bags used)."""
     from tqdm import tqdm
 
     from .checkpoint import build_model, load_weights, state_digest
@@ -107,11 +94,17 @@ def make_stats(bags, weights: str | Path, every: int = 1, command: str = "") -> 
 
     card, state = load_weights(weights)
     model = build_model(card, state, str(weights))
-    images = (project(*checked(s.points, s.grid, s.intensity), s.intensity)[0]
-              for bag in tqdm(bags, desc="scans", unit="bag") for s in read_scans(bag, every=every)
-              if s.grid.azimuth is not None)
-    stats, n = estimate(model, images)
-    return write_stats(stats, weights, state_digest(state), command, n), n
+    used: set[str] = set()
+
+    def images():
+        for bag in tqdm(bags, desc="scans", unit="bag"):
+            for s in read_scans(bag, every=every):
+                if s.grid.azimuth is not None:
+                    used.add(str(bag))
+                    yield project(*checked(s.points, s.grid, s.intensity), s.intensity)[0]
+
+    stats, n = estimate(model, images())
+    return write_stats(stats, weights, state_digest(state), command, n), n, len(used)
 
 
 def _copy(model: RangeNet) -> RangeNet:

@@ -19,7 +19,6 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..reports import written_whole
 
 log = logging.getLogger(__name__)
 
@@ -90,18 +89,11 @@ def ranges_path(weights: str | Path) -> Path:
 
 def load_ranges(weights: str | Path, state_sha256: str) -> tuple[dict | None, str]:
     """(ORT calibration ranges, "") for the weights whose tensors hash to ``state_sha256``, or (None, why not)."""
-    path = ranges_path(weights)
-    if not path.is_file():
-        return None, f"no activation ranges beside the weights ({path.name}; make them with topometric quantize)"
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        return None, f"{path}: not readable JSON ({e})"
-    if doc.get("format_version") != FORMAT_VERSION or not isinstance(doc.get("ranges"), dict):
-        return None, f"{path}: not an activation-range file of format {FORMAT_VERSION}"
-    if doc.get("state_sha256") != state_sha256:
-        return None, f"{path} was calibrated for other weights; run topometric quantize for these"
-    return doc["ranges"], ""
+    from .checkpoint import read_beside
+
+    doc, why = read_beside(weights, RANGES_NAME, FORMAT_VERSION, "ranges", state_sha256, "activation ranges",
+                           "topometric quantize")
+    return (None, why) if doc is None else (doc["ranges"], "")
 
 
 def quantize(model_bytes: bytes, ranges: dict) -> bytes:
@@ -189,10 +181,9 @@ def _quiet_root_logger():
 
 def write_ranges(ranges: dict, weights: str | Path, state_sha256: str, command: str, images: int) -> Path:
     """Save the ranges beside the weights, tied to their tensors' digest; returns the path."""
-    path = ranges_path(weights)
+    from .checkpoint import write_beside
+
     doc = {"format_version": FORMAT_VERSION, "state_sha256": state_sha256, "command": command, "images": images,
            "ranges_sha256": hashlib.sha256(json.dumps(ranges, sort_keys=True).encode()).hexdigest(),
            "ranges": ranges}
-    with written_whole(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    return path
+    return write_beside(weights, RANGES_NAME, doc, indent=1)

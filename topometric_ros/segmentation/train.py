@@ -247,10 +247,11 @@ def evaluate_cache(model: RangeNet, groups: Sequence[dict], batch: int = 4) -> d
 def validation_entry(conf: dict[str, np.ndarray]) -> dict:
     """An epoch's validation record from per-sensor confusion matrices: ``val_miou``, the mean over sensor models
     of each one's mIoU (paper classes; the goal is per sensor, and pooled pixels would let the 128-beam models
-    outweigh a 16-beam one eight to one), ``val_miou_by_sensor``, and ``val_iou`` per class of the pooled pixels."""
+    outweigh a 16-beam one eight to one; a model whose scans show none of those classes is left out),
+    ``val_miou_by_sensor``, and ``val_iou`` per class of the pooled pixels."""
     by_sensor = {name: round(miou(c), 4) for name, c in sorted(conf.items())}
     pooled = sum(conf.values())
-    return {"val_miou": round(float(np.mean(list(by_sensor.values()))), 4), "val_miou_by_sensor": by_sensor,
+    return {"val_miou": round(float(np.nanmean(list(by_sensor.values()))), 4), "val_miou_by_sensor": by_sensor,
             "val_iou": {C.NAMES[c]: round(float(v), 4) for c, v in enumerate(iou_per_class(pooled))}}
 
 
