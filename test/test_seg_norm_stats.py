@@ -150,6 +150,10 @@ def test_norm_stats_command_writes_the_file_and_refuses_bags_without_a_non_repet
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "simulate", "--sensor", sensor, "--scene",
                               "office1", "--frames", "2", "--out", str(tmp_path / sensor)], capture_output=True, text=True)
         assert res.returncode == 0, res.stderr
+    eval_seg = [sys.executable, "-m", "topometric_ros.cli", "eval-seg", str(tmp_path / "Mid-360"), "--weights",
+                str(weights), "--out", str(tmp_path / "eval")]
+    res = subprocess.run(eval_seg, capture_output=True, text=True)
+    assert res.returncode == 0 and "non-repetitive scans: 2, with the shared BatchNorm statistics" in res.stdout
     res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "norm-stats", str(tmp_path / "VLP-16"),
                           "--weights", str(weights)], capture_output=True, text=True)
     assert res.returncode == 2 and "no non-repetitive scan" in res.stderr and "Traceback" not in res.stderr
@@ -160,3 +164,5 @@ def test_norm_stats_command_writes_the_file_and_refuses_bags_without_a_non_repet
     assert doc["images"] == 2 and doc["state_sha256"] == state_digest(state)
     assert doc["command"].startswith("topometric norm-stats ")
     assert Segmenter.from_config(SegmentationConfig(weights=str(weights))).has_pattern_stats
+    res = subprocess.run(eval_seg, capture_output=True, text=True)
+    assert res.returncode == 0 and "non-repetitive scans: 2, with their own BatchNorm statistics" in res.stdout

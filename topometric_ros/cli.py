@@ -491,6 +491,10 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
               f"{f'floor band {args.floor_band} m' if args.floor_band else 'no floor check'}, "
               f"{f'objects within {args.object_gap} m' if args.object_gap else 'no object labels'}, "
               f"{segmenter.precision if segmenter else 'no'} network, projection + network + back-projection)")
+    if segmenter is not None and result["non_repetitive"]:
+        print(f"non-repetitive scans: {result['non_repetitive']}, with "
+              + ("their own BatchNorm statistics (rangenet.norm.json)" if segmenter.has_pattern_stats else
+                 "the shared BatchNorm statistics: these weights have no rangenet.norm.json (topometric norm-stats)"))
     print(f"wrote {args.out}/per_class_iou.csv, confusion.csv, confusion.png, metrics.json")
     return 0
 

@@ -25,12 +25,13 @@ def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, li
     """Score ``segmenter`` (None = the clouds' own label field, a sanity check) on labelled bags.
 
     Returns {'bags': {bag: conf}, 'scenes': {scene: conf}, 'sensors': {sensor: conf}, 'all': conf,
-    'scan_ms': [...], 'sensor_ms': {sensor: [...]}} with (K, K) confusion matrices (rows truth, columns
-    prediction); the times leave out each sensor's first scan (warm-up: the network's export for its shape).
+    'scan_ms': [...], 'sensor_ms': {sensor: [...]}, 'non_repetitive': scans whose grid has per-point azimuths}
+    with (K, K) confusion matrices (rows truth, columns prediction); the times leave out each sensor's first
+    scan (warm-up: the network's export for its shape).
     """
     from tqdm import tqdm
 
-    per_bag, per_scene, per_sensor, times, sensor_ms, warm = {}, {}, {}, [], {}, set()
+    per_bag, per_scene, per_sensor, times, sensor_ms, warm, non_repetitive = {}, {}, {}, [], {}, set(), 0
     total = np.zeros((C.NUM_CLASSES, C.NUM_CLASSES), np.int64)
     for b in tqdm(list(bags), desc="eval-seg", unit="bag", disable=not progress):
         conf = np.zeros_like(total)
@@ -38,6 +39,7 @@ def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, li
         for scan in read_scans(b, topic, every, limit):
             if scan.label is None:
                 raise ValueError(f"{b}: the cloud has no label field; eval-seg needs ground truth")
+            non_repetitive += scan.grid.azimuth is not None
             if segmenter is None:
                 pred = scan.label
             else:
@@ -55,6 +57,7 @@ def evaluate_bags(bags: Sequence[str | Path], segmenter=None, every: int = 1, li
         per_sensor[sensor] = per_sensor.get(sensor, 0) + conf
         total += conf
     return {"bags": per_bag, "scenes": per_scene, "sensors": per_sensor, "all": total, "scan_ms": times,
+            "non_repetitive": non_repetitive,
             "sensor_ms": sensor_ms}
 
 
