@@ -252,7 +252,7 @@ class Segmenter:
         card, state = load_weights(path)
         digest = state_digest(state)
         stats, why = load_stats(path, digest, state)
-        if stats is None:  # a file there but refused (other weights, damaged): said; none at all: other weights' way
+        if stats is None:  # a file there but refused (made for other weights, damaged): a warning; no file: info
             (log.warning if (path.parent / NORM_NAME).is_file() else log.info)(
                 "segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
