@@ -2,10 +2,11 @@
 
     python test/ros_player.py BAG [--rate 1] [--clock] [--clock-tail 8] [--topics /points /odom /tf_static]
                               [--remap /points:=/velodyne_points] [--wait-subscribers 10] [--log scans.jsonl]
+                              [--reliable-clouds]
 
 Messages go out as the bag stores them (CDR bytes, no decoding) at the bag's pace times ``--rate``, with
 the QoS a robot uses: /tf_static latched (reliable, transient local), clouds with the sensor-data profile
-(best effort), everything else reliable. ``--clock`` publishes /clock (rosgraph_msgs/Clock) in bag time at
+(best effort; reliable, keep last 10, with ``--reliable-clouds``), everything else reliable. ``--clock`` publishes /clock (rosgraph_msgs/Clock) in bag time at
 100 Hz while playing, and for ``--clock-tail`` s of bag time after the last message, so a node on
 ``use_sim_time`` sees time go on after its input stops. ``--log`` writes one JSON line per published cloud:
 its header stamp (s) and the wall time (s, time.time()) it was published. Prints a JSON summary on exit.
@@ -32,11 +33,13 @@ def message_class(msgtype: str):
     return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
-def qos_for(topic: str, msgtype: str) -> QoSProfile:
+def qos_for(topic: str, msgtype: str, reliable_clouds: bool = False) -> QoSProfile:
     if topic == "/tf_static":
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if msgtype == "sensor_msgs/msg/PointCloud2":
+        if reliable_clouds:
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
         return qos_profile_sensor_data
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -68,7 +71,7 @@ def play(args) -> dict:
             if conn.topic in args.topics and conn.topic not in pubs:
                 out = remap.get(conn.topic, conn.topic)
                 pubs[conn.topic] = node.create_publisher(message_class(conn.msgtype), out,
-                                                         qos_for(conn.topic, conn.msgtype))
+                                                         qos_for(conn.topic, conn.msgtype, args.reliable_clouds))
                 counts[conn.topic] = 0
     clock_pub = None
     if args.clock:
@@ -133,6 +136,8 @@ def main(argv=None) -> int:
     ap.add_argument("--remap", nargs="*", default=[], help="FROM:=TO topic names")
     ap.add_argument("--wait-subscribers", type=float, default=10.0, help="s to wait for subscribers first")
     ap.add_argument("--log", help="JSON lines: stamp and publish wall time of each cloud")
+    ap.add_argument("--reliable-clouds", action="store_true", help="publish clouds reliable (keep last 10), not "
+                                                                   "best effort: a test that must lose none")
     args = ap.parse_args(argv)
     rclpy.init()
     try:
