@@ -132,11 +132,11 @@ def weights_files(config: Config) -> dict[str, Path]:
     without the network)."""
     if config.segmentation.mode != "network":
         return {}
-    from .segmentation.checkpoint import SHIPPED
+    from .segmentation.checkpoint import SHIPPED, beside
 
     weights = Path(config.segmentation.weights) if config.segmentation.weights else SHIPPED
-    beside = {name: weights.parent / file for name, file in _files_beside_weights().items()}
-    return {"weights": weights, **{name: path for name, path in beside.items() if path.is_file()}}
+    files = {name: beside(weights, file) for name, file in _files_beside_weights().items()}
+    return {"weights": weights, **{name: path for name, path in files.items() if path.is_file()}}
 
 
 def _files_beside_weights() -> dict[str, str]:

@@ -125,12 +125,17 @@ def state_digest(state: dict) -> str:
     return h.hexdigest()
 
 
+def beside(weights: str | Path, name: str) -> Path:
+    """The file ``name`` beside a weights file (its int8 ranges, its non-repetitive statistics)."""
+    return Path(weights).parent / name
+
+
 def read_beside(weights: str | Path, name: str, fmt: int, key: str, state_sha256: str, what: str,
                 command: str) -> tuple[dict | None, str]:
     """(the JSON document ``name`` beside ``weights``, "") when it is of format ``fmt``, holds a dict under ``key``
     and was made for the weights whose tensors hash to ``state_sha256``; else (None, why not). ``what`` names
     the file's content and ``command`` the command that makes it, for the reasons."""
-    path = Path(weights).parent / name
+    path = beside(weights, name)
     if not path.is_file():
         return None, f"no {what} beside the weights ({name}; make them with {command})"
     try:
@@ -146,7 +151,7 @@ def read_beside(weights: str | Path, name: str, fmt: int, key: str, state_sha256
 
 def write_beside(weights: str | Path, name: str, doc: dict, indent: int | None = None) -> Path:
     """Write the JSON document ``doc`` whole as ``name`` beside ``weights``; returns its path."""
-    path = Path(weights).parent / name
+    path = beside(weights, name)
     with written_whole(path) as tmp:
         tmp.write_text(json.dumps(doc, indent=indent) + "\n")
     return path

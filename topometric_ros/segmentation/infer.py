@@ -26,7 +26,7 @@ from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
-from .checkpoint import SHIPPED, SegmentationError, build_model, load_weights, state_digest, torch_device
+from .checkpoint import SHIPPED, SegmentationError, beside, build_model, load_weights, state_digest, torch_device
 from .floor import lift_off_floor
 from .knn import knn_vote
 from .norm_stats import NORM_NAME, load_stats, with_stats
@@ -253,7 +253,7 @@ class Segmenter:
         digest = state_digest(state)
         stats, why = load_stats(path, digest, state)
         if stats is None:  # a file there but refused (made for other weights, damaged): a warning; no file: info
-            (log.warning if (path.parent / NORM_NAME).is_file() else log.info)(
+            (log.warning if beside(path, NORM_NAME).is_file() else log.info)(
                 "segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
                    cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, digest), cfg.floor_band,

@@ -72,14 +72,14 @@ def write_stats(stats: dict[str, list], weights: str | Path, state_sha256: str, 
 def load_stats(weights: str | Path, state_sha256: str, keys: Iterable[str]) -> tuple[dict | None, str]:
     """(statistics, "") for the weights whose tensors hash to ``state_sha256`` and whose BatchNorm buffers are
     among ``keys`` (a state dict's names), or (None, why not)."""
-    from .checkpoint import read_beside
+    from .checkpoint import beside, read_beside
 
     doc, why = read_beside(weights, NORM_NAME, FORMAT_VERSION, "statistics", state_sha256, "non-repetitive statistics",
                            "topometric norm-stats")
     if doc is None:
         return None, why
     if set(doc["statistics"]) != {k for k in keys if k.rsplit(".", 1)[-1] in STAT_KEYS}:
-        return None, f"{Path(weights).parent / NORM_NAME}: its layers do not match the network's BatchNorm layers"
+        return None, f"{beside(weights, NORM_NAME)}: its layers do not match the network's BatchNorm layers"
     return doc["statistics"], ""
 
 

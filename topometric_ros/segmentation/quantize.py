@@ -82,11 +82,6 @@ def calibrate_scans(weights: str | Path, scans: Iterable[tuple]) -> tuple[dict, 
     return ranges, n, state_digest(state)
 
 
-def ranges_path(weights: str | Path) -> Path:
-    """Where the activation ranges of a weights file live: beside it."""
-    return Path(weights).parent / RANGES_NAME
-
-
 def load_ranges(weights: str | Path, state_sha256: str) -> tuple[dict | None, str]:
     """(ORT calibration ranges, "") for the weights whose tensors hash to ``state_sha256``, or (None, why not)."""
     from .checkpoint import read_beside
