@@ -63,3 +63,18 @@ def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped
     bad = replace(task, key={**key, "weights": "0" * 64})
     ((_, result, error),) = run_tasks(audit_bag, [bad], engine="local", progress=False)
     assert result is None and "changed since the audit started" in error
+
+
+def test_rays_start_up_lines_stay_out_of_the_progress_bar(tmp_path):
+    """Ray starts before the bar is drawn, so what Ray prints at start-up (e.g. its token-authentication line)
+    is on its own line, not glued to the bar's first state. A fresh process: a Ray already up prints nothing."""
+    import subprocess
+    import sys
+
+    code = ("import math\nfrom topometric_ros.engine import run_tasks\n"
+            "print(sorted(r for _, r, _ in run_tasks(math.sqrt, [1, 4, 9], engine='ray', workers=1, desc='t')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0 and done.stdout.strip() == "[1.0, 2.0, 3.0]", done.stderr
+    states = [s for s in done.stderr.replace("\n", "\r").split("\r") if "%|" in s]
+    assert states and states[-1].startswith("t: 100%"), done.stderr
+    assert all(s.rstrip().endswith("]") for s in states), done.stderr  # nothing printed into a bar's line

@@ -398,6 +398,19 @@ def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tm
     assert code == 0 and summary["windows"] == 1 and "no window" not in out, out
 
 
+def test_the_progress_bar_ends_at_every_scan_done_with_the_windows_beside_it(office_bag, tmp_path, capsys):
+    """The bar counts scans the monitor is done with, not clouds read (the reader runs ahead of the work), and
+    its last state is drawn before it is cleared: 3/3 and the window they made, not 0/3."""
+    bag_path, _ = office_bag
+    rewrite(bag_path, tmp_path / "three", lambda t, m: [(t, m)], scans=3)
+    config = load_config(overrides={"window.size": 3, "health.baseline_windows": 2})
+    replay(tmp_path / "three", tmp_path / "out", config, ReplayOptions(progress=True, plot=False),
+           floor_scan, floor_window)
+    states = [s.strip() for s in capsys.readouterr().err.split("\r") if "replay:" in s]
+    assert states and states[-1].startswith("replay: 100%") and " 3/3 " in states[-1], states
+    assert states[-1].endswith("windows 1, WARN 0, ERROR 0]"), states
+
+
 def test_a_replay_that_processes_scans_names_its_mode_and_sensor(office_bag, tmp_path, capsys):
     bag_path, _ = office_bag
     rewrite(bag_path, tmp_path / "short", lambda t, m: [(t, m)], scans=6)

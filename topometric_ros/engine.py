@@ -79,6 +79,8 @@ def run_tasks(fn: Callable, items: Iterable, engine: str = "ray", workers: int =
         raise ValueError(f"workers must be >= 1, got {workers}")
     items = list(items)
     shared = dict(shared or {})
+    if engine == "ray" and items:
+        ensure_ray(workers, address)  # before the bar: Ray's start-up lines then stay out of it
     bar = tqdm(total=len(items), desc=desc, unit="task", disable=not progress or not items)
     try:
         if engine == "local" or not items:

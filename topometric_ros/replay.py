@@ -32,6 +32,7 @@ from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
+DRAIN_POLL_S = 0.2  # s, how often the progress bar moves while the monitor finishes the last scans
 #: fields of a window record (windows.json): 2 added the drift rates and rpe_estimate, 3 the joint rate fit, 4 speed,
 #: turn rate and per-window rate limits, 5 the true rates as trends over all scans, 6 the scan agreement
 RECORD_FORMAT = 6
@@ -222,7 +223,9 @@ class _Feed:
         self._stale = False
 
     def run(self, messages: Iterator[tuple[str, int, Any]], total: int | None) -> None:
-        """Feed every message; an exception of the reader ends the loop and is kept in ``error``."""
+        """Feed every message, then wait for the monitor to finish every scan; an exception of the reader ends
+        the loop and is kept in ``error``. The bar counts scans done (processed or dropped), not scans read:
+        the monitor works behind the reader."""
         from tqdm import tqdm
 
         wall0, cpu0 = time.perf_counter(), time.thread_time()
@@ -230,12 +233,29 @@ class _Feed:
         try:
             for topic, t_ns, msg in messages:
                 self._message(topic, t_ns * 1e-9, msg, wall0)
-                bar.update(topic == self.opt.points_topic)
+                if topic == self.opt.points_topic:
+                    self._show(bar)
         except Exception as e:  # noqa: BLE001 - a broken bag is reported, the work done so far is kept
             self.error = f"{type(e).__name__}: {e}"
         finally:
-            bar.close()
             self.reader_cpu_s = time.thread_time() - cpu0
+            try:
+                while not self.monitor.flush(timeout=DRAIN_POLL_S):
+                    self._show(bar)
+                self._show(bar)
+                bar.refresh()
+            finally:
+                bar.close()
+
+    def _show(self, bar) -> None:
+        """The bar at the scans the monitor is done with, the windows and alarms so far beside it."""
+        c = self.monitor.counters
+        bar.update(c["scans_processed"] + c["dropped_scans"] - bar.n)
+        if not bar.disable:
+            with self.rec.lock:
+                levels = [r["level"] for r in self.rec.records]
+            bar.set_postfix_str(f"windows {len(levels)}, WARN {levels.count('WARN')}, "
+                                f"ERROR {levels.count('ERROR')}", refresh=False)
 
     def _message(self, topic: str, t: float, msg: Any, wall0: float) -> None:
         opt, monitor = self.opt, self.monitor
