@@ -190,3 +190,49 @@ def test_the_check_matches_its_rule_written_plainly_on_random_scans(seed):
 def test_a_negative_band_is_refused():
     with pytest.raises(SegmentationError, match="segmentation.floor_band"):
         Segmenter.from_config(replace(SegmentationConfig(), floor_band=-0.01))
+
+
+def test_the_snap_makes_floor_of_what_lies_on_the_floor_plane_and_nothing_else():
+    """snap_to_floor: other / wall / desk / chair points within the band of the floor plane become floor with the
+    floor points' mean confidence; a point just outside the band, a pillar on the plane, and every floor point keep
+    their labels."""
+    points, grid, labels, conf, foot = _room()
+    points[foot, 2] = -1.0  # the foot flat again: a plain floor
+    points[labels == C.WALL, 2] += 0.05  # the wall's foot off the floor plane (on it, it would snap)
+    rng = np.random.default_rng(3)
+    floor = np.flatnonzero(labels == C.FLOOR)
+    misread = rng.choice(floor, 12, replace=False)
+    labels[misread] = np.array([C.WALL, C.OTHER, C.DESK, C.CHAIR] * 3)
+    conf[misread] = 0.4
+    pillar = np.setdiff1d(floor, misread)[:2]
+    labels[pillar] = C.PILLAR
+    above = np.flatnonzero(labels == C.WALL)[-1]  # a wall point 1 cm above the band
+    points[above, 2] = -1.0 + 0.03
+    out, out_conf = F.snap_to_floor(points, labels, conf, 0.02)
+    assert np.all(out[misread] == C.FLOOR)
+    assert np.allclose(out_conf[misread], conf[labels == C.FLOOR].mean())
+    rest = np.setdiff1d(np.arange(len(points)), misread)
+    assert np.array_equal(out[rest], labels[rest]) and np.array_equal(out_conf[rest], conf[rest])
+    assert out[above] == C.WALL and np.all(out[pillar] == C.PILLAR)
+    assert np.array_equal(F.snap_to_floor(points, labels, conf, 0.0)[0], labels)  # off
+    few = labels.copy()
+    few[few == C.FLOOR] = C.OTHER  # no floor labels: no plane, nothing changes
+    assert np.array_equal(F.snap_to_floor(points, few, conf, 0.02)[0], few)
+
+
+def test_the_segmenter_snaps_non_repetitive_scans_only():
+    """The same Segmenter with and without segmentation.floor_snap: a spinning scan comes out identical, a Mid-360
+    scan gains floor points and loses none."""
+    from topometric_ros.sim.frames import simulated_frames
+
+    off = Segmenter.from_config(replace(SegmentationConfig(), floor_snap=0.0))
+    on = Segmenter.from_config(SegmentationConfig())
+    assert on.floor_snap == 0.02
+    (spinning,), _ = simulated_frames("office2", 1, seed=5)
+    a, b = off.predict(spinning.points, spinning.ring), on.predict(spinning.points, spinning.ring)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    (mid,), _ = simulated_frames("garage", 1, seed=2, sensor="Mid-360")  # 942 floor points in view
+    (a, _), (b, _) = off.predict(mid.points, mid.ring), on.predict(mid.points, mid.ring)
+    assert np.all(b[a == C.FLOOR] == C.FLOOR) and np.count_nonzero(b == C.FLOOR) > np.count_nonzero(a == C.FLOOR)
+    with pytest.raises(SegmentationError, match="segmentation.floor_snap"):
+        Segmenter.from_config(replace(SegmentationConfig(), floor_snap=-0.01))

@@ -477,7 +477,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
                                                              threads=args.threads, passes=args.passes,
                                                              max_beams=args.max_beams, knn=args.knn,
                                                              precision=args.precision, floor_band=args.floor_band,
-                                                             object_gap=args.object_gap))
+                                                             object_gap=args.object_gap, floor_snap=args.floor_snap))
     result = evaluate_bags(bags, segmenter, every=args.every, limit=args.limit)
     metrics = write_report(result, args.out, args.title)
     print(format_table(metrics["rows"]))
@@ -490,6 +490,7 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
               f"{f'{args.knn}-nearest-neighbour vote' if args.knn else 'no neighbour vote'}, "
               f"{f'floor band {args.floor_band} m' if args.floor_band else 'no floor check'}, "
               f"{f'objects within {args.object_gap} m' if args.object_gap else 'no object labels'}, "
+              f"{f'non-repetitive floor snap {args.floor_snap} m' if args.floor_snap else 'no floor snap'}, "
               f"{segmenter.precision if segmenter else 'no'} network, projection + network + back-projection)")
     if segmenter is not None and result["non_repetitive"]:
         print(f"non-repetitive scans: {result['non_repetitive']}, with "
@@ -624,6 +625,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--object-gap", type=float, default=SegmentationConfig().object_gap,
                    help="m, desk and chair points this close in neighbouring cells form one object, which takes its "
                         "commonest label (segmentation.object_gap; 0 = off)")
+    e.add_argument("--floor-snap", type=float, default=SegmentationConfig().floor_snap,
+                   help="m, in non-repetitive scans, other, wall, desk and chair points this close to the floor plane "
+                        "become floor (segmentation.floor_snap; 0 = off)")
     e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
                    help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
     e.add_argument("--every", type=_positive, default=1, help="use every n-th scan")

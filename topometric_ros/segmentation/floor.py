@@ -9,6 +9,11 @@ level, a ramp or a step) and more than ``band`` above the lowest floor-labelled 
 non-floor points within DISTANCE (a tie: the nearest voter's class among the tied); with none there it stays
 floor. Neighbours are searched among the grid cells of a WINDOW around the point's own (azimuth wraps around).
 Points are in the SENSOR frame, metres. Chosen on the validation layout (docs/results.md, sixteenth session).
+
+The other way round, for non-repetitive scans only (snap_to_floor): there the floor is sparse and seen at
+grazing angles, and the network reads a good share of it as wall or other; a point of those classes (or desk,
+chair) lying within a band of the floor plane becomes floor. Spinning scans lose floor IoU with it (their
+floors are read well, and what lies on the plane there is mostly a wall's foot): twenty-first session.
 """
 from __future__ import annotations
 
@@ -36,6 +41,8 @@ VOTERS = 5
 DISTANCE = 1.0
 #: Rows x columns of grid cells around a lifted point searched for neighbours.
 WINDOW = (7, 15)
+#: Classes a non-repetitive scan's point on the floor plane gives up for floor (snap_to_floor).
+SNAPPED = (C.OTHER, C.WALL, C.DESK, C.CHAIR)
 
 
 def floor_plane(points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -99,6 +106,29 @@ def lift_off_floor(points: np.ndarray, grid: ScanGrid, labels: np.ndarray, confi
     _relabel(np.ascontiguousarray(points, np.float32), np.asarray(grid.row), np.asarray(grid.col), grid.height,
              grid.width, labels, confidence, plane[0], plane[1], float(band), REACH, rows, columns,
              float(distance) ** 2, VOTERS, C.FLOOR, C.NUM_CLASSES, out_labels, out_conf)
+    return out_labels, out_conf
+
+
+def snap_to_floor(points: np.ndarray, labels: np.ndarray, confidence: np.ndarray, band: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,) uint8, confidence (N,) float32) with the SNAPPED-class points within ``band`` m of the scan's
+    floor plane (floor_plane, either side) labelled floor, taking the mean confidence of the floor-labelled
+    points. Points (N, 3) in the sensor frame. ``band`` <= 0 or no floor plane: the input unchanged. Meant for
+    non-repetitive scans only (module docstring)."""
+    labels = np.asarray(labels, np.uint8)
+    confidence = np.asarray(confidence, np.float32)
+    plane = floor_plane(points, labels) if band > 0 and len(points) else None
+    if plane is None:
+        return labels, confidence
+    normal, offset = plane
+    with np.errstate(invalid="ignore"):
+        on_floor = np.abs(np.asarray(points, np.float64) @ normal - offset) <= band
+    snap = on_floor & np.isin(labels, SNAPPED)
+    if not snap.any():
+        return labels, confidence
+    out_labels, out_conf = labels.copy(), confidence.copy()
+    out_labels[snap] = C.FLOOR
+    out_conf[snap] = confidence[labels == C.FLOOR].mean()
     return out_labels, out_conf
 
 

@@ -27,7 +27,7 @@ from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
 from .checkpoint import SHIPPED, SegmentationError, beside, build_model, load_weights, state_digest, torch_device
-from .floor import lift_off_floor
+from .floor import lift_off_floor, snap_to_floor
 from .knn import knn_vote
 from .norm_stats import NORM_NAME, load_stats, with_stats
 from .objects import unify_objects
@@ -202,8 +202,10 @@ class Segmenter:
     then takes the majority label of its ``knn`` nearest points within ``knn_distance`` m (knn.knn_vote).
     ``floor_band`` (> 0, m): then floor-labelled points standing more than that above the floor take their
     non-floor neighbours' label (floor.lift_off_floor). ``object_gap`` (> 0, m): then desk and chair points
-    joined within that gap take their object's majority label (objects.unify_objects), last. The constructor's
-    defaults leave the vote, the check and the objects off; :meth:`from_config` takes the config's (all on).
+    joined within that gap take their object's majority label (objects.unify_objects). ``floor_snap`` (> 0, m):
+    last, in a non-repetitive scan (a grid with per-point azimuths), other, wall, desk and chair points within that
+    of the floor plane become floor (floor.snap_to_floor). The constructor's defaults leave the vote, the check,
+    the objects and the snap off; :meth:`from_config` takes the config's (all on).
     ``pattern_stats`` (norm_stats.py): BatchNorm statistics the network uses for non-repetitive scans (grids
     with per-point azimuths); every other scan runs with the weights' own. ``self.has_pattern_stats`` says
     whether there are some.
@@ -212,7 +214,7 @@ class Segmenter:
     def __init__(self, model: RangeNet, card: dict, device: str = "cpu", threads: int = 1,
                  backend: str = "onnxruntime", passes: int = 1, max_beams: int = 0, knn: int = 0,
                  knn_distance: float = 0.5, int8_ranges: dict | None = None, floor_band: float = 0.0,
-                 object_gap: float = 0.0, pattern_stats: dict | None = None):
+                 object_gap: float = 0.0, pattern_stats: dict | None = None, floor_snap: float = 0.0):
         self.device = torch_device(device)
         if backend not in BACKENDS:
             raise SegmentationError(f"unknown segmentation backend {backend!r}; use {' or '.join(BACKENDS)}")
@@ -224,8 +226,10 @@ class Segmenter:
             raise SegmentationError(f"segmentation.floor_band must be >= 0 m, got {floor_band}")
         if not object_gap >= 0:
             raise SegmentationError(f"segmentation.object_gap must be >= 0 m, got {object_gap}")
+        if not floor_snap >= 0:
+            raise SegmentationError(f"segmentation.floor_snap must be >= 0 m, got {floor_snap}")
         self.threads = threads
-        self.floor_band, self.object_gap = float(floor_band), float(object_gap)
+        self.floor_band, self.object_gap, self.floor_snap = float(floor_band), float(object_gap), float(floor_snap)
         self.max_beams = int(max_beams)
         self.knn, self.knn_distance = int(knn), float(knn_distance)
         self.card = card
@@ -257,7 +261,7 @@ class Segmenter:
                 "segmentation: non-repetitive scans use the shared BatchNorm statistics: %s", why)
         return cls(build_model(card, state, str(path)), card, cfg.device, cfg.threads, cfg.backend, cfg.passes,
                    cfg.max_beams, cfg.knn, cfg.knn_distance, _int8_ranges(cfg, path, digest), cfg.floor_band,
-                   cfg.object_gap, stats)
+                   cfg.object_gap, stats, cfg.floor_snap)
 
     def predict(self, points: np.ndarray, grid=None, intensity: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -289,6 +293,8 @@ class Segmenter:
                     out[i] = lift_off_floor(*scans[i][:2], *out[i], self.floor_band)
                 if self.object_gap:
                     out[i] = unify_objects(*scans[i][:2], *out[i], self.object_gap)
+                if self.floor_snap and non_repetitive:
+                    out[i] = snap_to_floor(scans[i][0], *out[i], self.floor_snap)
                 start = stop
         return out
 
