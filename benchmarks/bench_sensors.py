@@ -6,7 +6,7 @@ For every sensors.py model: a few motion-distorted sweeps of office1 written in 
 ``python -m benchmarks sensors`` (``TOPOMETRIC_BENCH_SENSORS=VLP-16,OS1-128`` picks models). Sensors of more than
 FEW_BEAMS beams are also run with ``segmentation.max_beams`` FEW_BEAMS, side by side (keys ``*_ms_mb64``), and every
 sensor with the float32 network (``segmentation.precision`` float32, keys ``*_ms_f32``; the default, auto, runs
-int8 on a CPU with VNNI: ``precision`` says which ran).
+int8 on an x86 CPU with VNNI or AVX2: ``precision`` says which ran).
 """
 from __future__ import annotations
 

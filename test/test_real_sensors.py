@@ -56,13 +56,13 @@ def test_the_bag_with_poses_gives_its_window_and_loses_no_scan(tmp_path):
 
 
 def test_inspect_says_how_the_network_ran(tmp_path, capsys):
-    """The console names the mode and the network's precision (int8 on a CPU with VNNI, else float32)."""
+    """The console names the mode and the network's precision (int8 on an x86 CPU with VNNI or AVX2, else float32)."""
     from topometric_ros.cli import main
-    from topometric_ros.segmentation.quantize import cpu_has_vnni
+    from topometric_ros.segmentation.quantize import cpu_runs_int8
 
     path = ROOT / "os1_32_g_legacy"
     assert main(["inspect", str(path), "--out", str(tmp_path / "auto"), "--no-plot"]) == 0
-    want = "int8" if cpu_has_vnni() else "float32"
+    want = "int8" if cpu_runs_int8() else "float32"
     assert f"segmentation network, {want} inference, a 3-nearest-neighbour vote; sensor read off each cloud" \
         in capsys.readouterr().out
     assert main(["inspect", str(path), "--out", str(tmp_path / "f32"), "--no-plot",

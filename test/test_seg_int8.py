@@ -13,8 +13,8 @@ import pytest
 from topometric_ros.config import SegmentationConfig
 from topometric_ros.segmentation.checkpoint import SHIPPED, load_weights, state_digest
 from topometric_ros.segmentation.infer import Segmenter, export_onnx
-from topometric_ros.segmentation.quantize import (RANGES_NAME, _merge, calibrate_scans, cpu_has_vnni, load_ranges,
-                                                  quantize, write_ranges)
+from topometric_ros.segmentation.quantize import (RANGES_NAME, _merge, calibrate_scans, cpu_has_vnni, cpu_runs_int8,
+                                                  load_ranges, quantize, write_ranges)
 from topometric_ros.sim.frames import simulated_frames
 
 
@@ -34,6 +34,18 @@ def test_vnni_is_read_off_the_cpu_flags(tmp_path):
     info.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f\n")  # avx512f alone is no VNNI
     assert not cpu_has_vnni(info)
     assert not cpu_has_vnni(tmp_path / "absent")
+
+
+def test_auto_runs_int8_on_x86_cpus_with_vnni_or_avx2_only(tmp_path):
+    """precision auto: int8 where the flags show VNNI or AVX2 (7-bit weights there), float32 on a CPU with neither
+    (an old x86, or no x86 flags at all: other architectures are not measured)."""
+    info = tmp_path / "cpuinfo"
+    for flags, int8, vnni in (("fpu sse avx2 avx512f avx512_vnni", True, True), ("fpu sse avx avx2 fma", True, False),
+                              ("fpu sse sse4_2 avx", False, False)):
+        info.write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
+        assert (cpu_runs_int8(info), cpu_has_vnni(info)) == (int8, vnni), flags
+    info.write_text("processor\t: 0\nFeatures\t: fp asimd asimddp\n")  # aarch64: no x86 flags line
+    assert not cpu_runs_int8(info) and not cpu_runs_int8(tmp_path / "absent")
 
 
 def test_the_shipped_ranges_fit_the_shipped_weights_and_no_others(tmp_path):

@@ -629,7 +629,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="m, in non-repetitive scans, other, wall, desk and chair points this close to the floor plane "
                         "become floor (segmentation.floor_snap; 0 = off)")
     e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
-                   help="network precision (segmentation.precision: auto = int8 on a CPU with VNNI)")
+                   help="network precision (segmentation.precision: auto = int8 on an x86 CPU with VNNI or AVX2)")
     e.add_argument("--every", type=_positive, default=1, help="use every n-th scan")
     e.add_argument("--limit", type=_count, default=0, help="at most this many scans per bag (0 = all)")
     e.add_argument("--title", default="", help="title of the confusion-matrix plot")

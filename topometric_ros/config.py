@@ -48,7 +48,7 @@ class SegmentationConfig:
     device: str = "cpu"  # cpu | cuda
     threads: int = 1  # CPU threads for inference (torch and ONNX Runtime)
     backend: str = "onnxruntime"  # CPU runtime: onnxruntime (exported in memory from the checked weights) | eager (PyTorch; also the fallback without onnxruntime)
-    precision: str = "auto"  # onnxruntime network: auto (int8 on a CPU with VNNI, else float32) | int8 | float32; int8 runs the net's body in 8-bit integers, calibrated on simulated scans (segmentation time −30 %, mIoU within −0.2 to +0.4 of float32)
+    precision: str = "auto"  # onnxruntime network: auto (int8 on an x86 CPU with VNNI or AVX2, else float32) | int8 | float32; int8 runs the net's body in 8-bit integers, calibrated on simulated scans (segmentation time −15 to −30 %, mIoU within −0.4 to +0.4 of float32)
     min_confidence: float = 0.0  # network points below this softmax probability (with passes > 1: the mean over the passes) become "other" (0 = keep all)
     passes: int = 1  # network passes per scan, probabilities averaged: 1 | 2 (+ the mirror image) | 3 (+ mirror and a half-fold azimuth shift; about +0.7 mIoU at 3x the network time: offline replays, audits)
     max_beams: int = 0  # most beams the network sees (0 = all): a sensor with more has every k-th beam segmented (k = ceil(beams / max_beams)), the beams between take their nearest segmented neighbour's label (about 1/k of the network's time)

@@ -31,7 +31,7 @@ from .floor import lift_off_floor, snap_to_floor
 from .knn import knn_vote
 from .norm_stats import NORM_NAME, load_stats, with_stats
 from .objects import unify_objects
-from .quantize import cpu_has_vnni, load_ranges, quantize
+from .quantize import cpu_runs_int8, load_ranges, quantize
 
 BACKENDS = ("onnxruntime", "eager")
 #: Largest |logit| difference between the ONNX Runtime export and PyTorch accepted at load time.
@@ -357,10 +357,10 @@ def _first_line(e: Exception) -> str:
 
 
 def _int8_ranges(cfg: SegmentationConfig, weights: Path, digest: str) -> dict | None:
-    """The activation ranges to run the network int8 with (segmentation.precision: int8, or auto on a CPU
-    with VNNI), else None; why an int8 request falls back to float32 is logged (a warning when int8 was
+    """The activation ranges to run the network int8 with (segmentation.precision: int8, or auto on an x86 CPU
+    with VNNI or AVX2), else None; why an int8 request falls back to float32 is logged (a warning when int8 was
     asked for by name)."""
-    if cfg.precision == "float32" or (cfg.precision == "auto" and not cpu_has_vnni()):
+    if cfg.precision == "float32" or (cfg.precision == "auto" and not cpu_runs_int8()):
         return None
     if cfg.backend != "onnxruntime" or cfg.device != "cpu":
         ranges, why = None, "int8 runs on the onnxruntime CPU backend only"

@@ -1,10 +1,13 @@
-"""The network in int8 on CPUs with VNNI: activation ranges calibrated once on simulated scans and shipped
-beside the weights (``rangenet.int8.json``), the exported network quantized in memory at load time.
+"""The network in int8 on x86 CPUs with VNNI or AVX2: activation ranges calibrated once on simulated scans and
+shipped beside the weights (``rangenet.int8.json``), the exported network quantized in memory at load time.
 
 Only the body of the net runs int8 (ONNX Runtime QDQ, per-channel int8 weights, uint8 activations): the stem
 (raw ranges and coordinates in), the head (scores out) and the read-out (infer.read_out, numpy) stay float32; quantizing those too
-cost 13.5 mIoU (docs/results.md). On a CPU without VNNI int8 convolutions gain little (11 %) and risk
-saturation, so ``segmentation.precision: auto`` runs int8 only where the CPU has VNNI.
+cost 13.5 mIoU (docs/results.md). Without VNNI, AVX2 multiplies 8-bit integers into 16-bit sums that can
+saturate, so there the weights take 7 bits (ORT's reduce_range): measured on an AVX2 CPU without VNNI, the whole
+per-scan pipeline 12-23 % faster, mIoU -0.28 to +0.02 of float32 on the unseen layout (docs/results.md, twenty-first session).
+``segmentation.precision: auto`` runs int8 where the CPU has either (cpu_runs_int8), float32 elsewhere (other
+architectures: not measured).
 """
 from __future__ import annotations
 
@@ -29,17 +32,27 @@ INT8_MODULES = ("enc2", "enc3", "fuse2", "fuse1", "refine")
 #: ONNX operators quantized inside those modules (Slice + Concat are the circular azimuth padding).
 INT8_OPS = ["Conv", "Concat", "Slice", "Relu", "Add", "Resize"]
 VNNI_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
+#: x86 flags of CPUs where ``precision: auto`` runs int8: VNNI, or AVX2 (7-bit weights there).
+INT8_FLAGS = (*VNNI_FLAGS, "avx2")
 
 
-def cpu_has_vnni(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
-    """Whether the CPU multiplies 8-bit integers with VNNI (x86 flags avx512_vnni, avx_vnni or amx_int8);
-    False when ``cpuinfo`` cannot be read (another OS or architecture)."""
+def _cpu_flags(cpuinfo: str | Path) -> list[str]:
+    """The x86 flags of ``cpuinfo`` (/proc/cpuinfo); none when it cannot be read (another OS or architecture)."""
     try:
         text = Path(cpuinfo).read_text()
     except OSError:
-        return False
-    flags = next((line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), [])
-    return any(f in flags for f in VNNI_FLAGS)
+        return []
+    return next((line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), [])
+
+
+def cpu_has_vnni(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
+    """Whether the CPU multiplies 8-bit integers with VNNI (x86 flags avx512_vnni, avx_vnni or amx_int8)."""
+    return any(f in _cpu_flags(cpuinfo) for f in VNNI_FLAGS)
+
+
+def cpu_runs_int8(cpuinfo: str | Path = "/proc/cpuinfo") -> bool:
+    """Whether ``segmentation.precision: auto`` runs int8 here: an x86 CPU with VNNI or AVX2 (INT8_FLAGS)."""
+    return any(f in _cpu_flags(cpuinfo) for f in INT8_FLAGS)
 
 
 def int8_nodes(model) -> list[str]:
