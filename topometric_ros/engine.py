@@ -92,7 +92,7 @@ def run_tasks(fn: Callable, items: Iterable, engine: str = "ray", workers: int =
                 bar.update()
                 yield item, result, error
             return
-        yield from _run_ray(fn, items, workers, address, shared, bar)
+        yield from _run_ray(fn, items, shared, bar)
     finally:
         bar.close()
 
@@ -126,11 +126,10 @@ def shutdown() -> None:
     _RAY.clear()
 
 
-def _run_ray(fn: Callable, items: list, workers: int, address: str | None, shared: dict, bar
-             ) -> Iterator[tuple[Any, Any, str | None]]:
+def _run_ray(fn: Callable, items: list, shared: dict, bar) -> Iterator[tuple[Any, Any, str | None]]:
+    """run_tasks on the Ray it started (ensure_ray)."""
     import ray
 
-    ensure_ray(workers, address)
     remote = ray.remote(num_cpus=1, max_retries=0)(_call_remote)
     names, refs = tuple(shared), [ray.put(v) for v in shared.values()]  # once, whatever the number of tasks
     pending = {remote.remote(fn, item, names, *refs): item for item in items}

@@ -18,6 +18,7 @@ import json
 import shutil
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -221,6 +222,8 @@ class _Feed:
         self.n_scans, self.first, self.last = 0, None, None
         self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
         self._stale = False
+        self._levels: Counter = Counter()  # the levels of rec.records[:self._counted], for the progress bar
+        self._counted = 0
 
     def run(self, messages: Iterator[tuple[str, int, Any]], total: int | None) -> None:
         """Feed every message, then wait for the monitor to finish every scan; an exception of the reader ends
@@ -252,10 +255,12 @@ class _Feed:
         c = self.monitor.counters
         bar.update(c["scans_processed"] + c["dropped_scans"] - bar.n)
         if not bar.disable:
-            with self.rec.lock:
-                levels = [r["level"] for r in self.rec.records]
-            bar.set_postfix_str(f"windows {len(levels)}, WARN {levels.count('WARN')}, "
-                                f"ERROR {levels.count('ERROR')}", refresh=False)
+            with self.rec.lock:  # only the windows recorded since the last call: a long bag's bar stays cheap
+                new = self.rec.records[self._counted:]
+            self._levels.update(r["level"] for r in new)
+            self._counted += len(new)
+            bar.set_postfix_str(f"windows {self._counted}, WARN {self._levels['WARN']}, "
+                                f"ERROR {self._levels['ERROR']}", refresh=False)
 
     def _message(self, topic: str, t: float, msg: Any, wall0: float) -> None:
         opt, monitor = self.opt, self.monitor
