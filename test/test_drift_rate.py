@@ -190,11 +190,9 @@ def test_absolute_rate_limits_raise_at_once_and_name_the_drift():
     assert off.assess(r).level == "OK"
 
 
-@pytest.mark.parametrize("mode", ["t", "r"])
-def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_path, mode):
-    """Labels from the bag, one ×1 episode (t: 0.2 m/s; r: 2 °/s): windows inside it read the injected rate,
-    the other rate stays below its WARN limit (a rotation is not read as translation), windows before it
-    stay far below both limits, and the RPE estimate follows the true RPE."""
+def _replay_episode(tmp_path, mode: str, sensor: str = "VLP-32C", segmentation: str = "labels"):
+    """A 32 s office1 bag of ``sensor`` with one ×1 drift episode of ``mode``, replayed: (windows inside the
+    episode, windows before it)."""
     from topometric_ros.config import load_config
     from topometric_ros.replay import ReplayOptions, replay
     from topometric_ros.sim.drift import DriftSpec
@@ -202,13 +200,23 @@ def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_pat
     from topometric_ros.sim.writer import SimConfig, simulate
 
     bag = tmp_path / mode
-    simulate(SimConfig(scene="office1", frames=160, rate=5.0, seed=21, drift=DriftSpec(mode, 1.0)), bag, progress=False)
-    res = replay(bag, tmp_path / "out", load_config(overrides={"segmentation.mode": "labels"}),
+    simulate(SimConfig(scene="office1", frames=160, rate=5.0, seed=21, sensor=sensor, drift=DriftSpec(mode, 1.0)),
+             bag, progress=False)
+    res = replay(bag, tmp_path / "out", load_config(overrides={"segmentation.mode": segmentation}),
                  ReplayOptions(progress=False, plot=False))
     ep = load_truth(bag)["episodes"][0]
     inside = [r for r in res.windows if r["start"] > ep["start"] + 0.1 and r["end"] < ep["end"]]
     before = [r for r in res.windows if r["end"] < ep["start"]]
     assert inside and before
+    return inside, before
+
+
+@pytest.mark.parametrize("mode", ["t", "r"])
+def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_path, mode):
+    """Labels from the bag, one ×1 episode (t: 0.2 m/s; r: 2 °/s): windows inside it read the injected rate,
+    the other rate stays below its WARN limit (a rotation is not read as translation), windows before it
+    stay far below both limits, and the RPE estimate follows the true RPE."""
+    inside, before = _replay_episode(tmp_path, mode)
     limits = Config().health
     injected, other = ("trans_rate", "rot_rate") if mode == "t" else ("rot_rate", "trans_rate")
     assert np.median([r[injected] for r in inside]) == pytest.approx(0.2 if mode == "t" else 2.0, rel=0.1)
@@ -220,6 +228,19 @@ def test_the_pipeline_reports_the_injected_drift_rate_on_a_simulated_bag(tmp_pat
     assert all(r["level"] in ("WARN", "ERROR") for r in inside[1:])
     assert inside[0]["level"] in ("WARN", "ERROR") or f"watch: {meaning}" in inside[0]["message"]
     assert np.median([r["rpe_estimate"] / r["rpe"] for r in inside]) == pytest.approx(1.0, rel=0.15)
+
+
+def test_a_non_repetitive_livox_reads_both_drift_rates_in_the_default_mode(tmp_path):
+    """The Mid-360 (no rings: its own segmentation path, BatchNorm statistics and floor snap; planes without
+    a ring grid), the shipped network segmenting: a 2 °/s + 0.2 m/s episode is read at both injected rates
+    and alarmed from its second window on; before it, both rates stay far below their limits."""
+    inside, before = _replay_episode(tmp_path, "rt", "Mid-360", "network")
+    limits = Config().health
+    assert np.median([r["rot_rate"] for r in inside]) == pytest.approx(2.0, rel=0.1)
+    assert np.median([r["trans_rate"] for r in inside]) == pytest.approx(0.2, rel=0.1)
+    assert all(r["level"] in ("WARN", "ERROR") for r in inside[1:])
+    assert max(r["trans_rate"] for r in before) < limits.trans_rate_warn / 2
+    assert max(r["rot_rate"] for r in before) < limits.rot_rate_warn / 2
 
 
 def test_the_rate_gate_widens_with_distance_so_a_drift_past_cpvs_gate_is_read():
