@@ -99,6 +99,27 @@ def _calibrated(folder, frames):
     return Segmenter.from_config(SegmentationConfig(weights=str(folder / "rangenet.pt"), precision="int8"))
 
 
+def test_an_image_shape_the_network_cannot_read_falls_back_alone_not_the_whole_segmenter(frames, caplog):
+    """A grid narrower than the network's circular padding allows (56 columns: grids are never built so narrow,
+    see grid.MIN_COLUMNS) fails to export int8, then float32, and fails in eager PyTorch too: that scan raises,
+    with a warning naming the shape, and the next scans still run int8 in ONNX Runtime."""
+    from topometric_ros.grid import ScanGrid, scan_grid
+
+    seg = Segmenter.from_config(SegmentationConfig(precision="int8"))
+    f = frames[0]
+    grid = scan_grid(f.points, f.ring)
+    narrow = ScanGrid(grid.row, grid.col % 56, grid.height, 56, grid.elevation_deg, grid.source)
+    with caplog.at_level(logging.WARNING), pytest.raises(RuntimeError, match="[Pp]adding"):
+        seg.predict(f.points, narrow, f.intensity)
+    assert "int8 network unavailable for 32x56 images" in caplog.text
+    assert "onnxruntime export failed for 32x56 images" in caplog.text
+    assert (seg.backend, seg.precision) == ("onnxruntime", "int8")
+    labels, _ = seg.predict(f.points, grid, f.intensity)
+    assert seg._onnx[(grid.height, grid.width, False)] is not None  # this shape's own int8 export
+    want = Segmenter.from_config(SegmentationConfig(precision="int8")).predict(f.points, grid, f.intensity)[0]
+    assert np.array_equal(labels, want)
+
+
 def test_calibration_round_trip_ranges_written_beside_the_weights_run_int8(tmp_path, frames):
     garage = simulated_frames("garage", 2, seed=4242)[0]
     seg = _calibrated(tmp_path, frames + garage)

@@ -63,9 +63,51 @@ def test_every_sensor_reads_back_with_its_rows_times_and_returns(office, name):
             assert np.array_equal(np.sort(grid.row), truth), grid.source
         assert scan_grid(scan.points).width == model.columns or abs(scan_grid(scan.points).width - model.columns) <= 8
     else:
-        grid = scan_grid(scan.points, scan.beam, scan.columns)
-        assert grid.source.startswith("elevation bins") and grid.height == 32
+        for grid in (scan_grid(scan.points, scan.beam, scan.columns),
+                     scan_grid(scan.points, scan.beam, scan.columns, layout=scan.layout)):
+            assert grid.source.startswith("elevation bins") and grid.height == 32
         assert scan_grid(scan.points, model=model).width == model.columns
+
+
+def _beams(elevations_deg, per_beam=180, range_m=10.0):
+    """(N, 3) float32 points of a spinning scan: each beam's ring of ``per_beam`` azimuths at ``range_m``."""
+    e, a = np.meshgrid(np.radians(elevations_deg), np.linspace(0, 2 * np.pi, per_beam, endpoint=False), indexing="ij")
+    return (range_m * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)).reshape(-1, 3).astype(np.float32)
+
+
+def test_a_cloud_in_a_non_repetitive_sensors_driver_layout_is_never_read_as_beams():
+    """No sensor named: the livox_ros_driver2 layout says non-repetitive, even for a scan whose elevations
+    happen to fall into beam-like clusters (about 1 % of simulated Mid-360 scans); a named model wins."""
+    pts = _beams(np.linspace(-7, 52, 16))
+    assert scan_grid(pts).source == "elevation clusters" and scan_grid(pts).height == 16
+    livox = scan_grid(pts, layout="livox")
+    assert livox.source == "elevation bins (non-repetitive)" and livox.height == 32 and livox.azimuth is not None
+    assert scan_grid(pts, layout="velodyne").source == "elevation clusters"
+    assert scan_grid(pts, model=sensor("VLP-16"), layout="livox").source == "VLP-16 beam table"
+    from topometric_ros.config import load_config
+    from topometric_ros.pipeline import segment_scan
+    from topometric_ros.window import Frame
+
+    cfg = load_config(overrides={"segmentation.mode": "none"})  # the Monitor's stage 1 reads the frame's layout
+    assert segment_scan(Frame(pts, np.eye(4), 0.0, layout="livox"), cfg).grid.source.startswith("elevation bins")
+
+
+def test_more_elevation_clusters_than_any_lidar_has_beams_are_no_beams():
+    """Elevations in narrow runs 0.15 deg apart: 200 runs are beams, 300 (> grid.MAX_BEAMS) are a
+    non-repetitive pattern's chance clustering."""
+    from topometric_ros.grid import MAX_BEAMS, beam_centres
+
+    for runs in (200, 300):
+        centres = beam_centres(_beams(-20 + 0.15 * np.arange(runs), per_beam=20))
+        assert (centres is not None and len(centres) == runs) == (runs <= MAX_BEAMS)
+
+
+def test_a_grid_is_never_narrower_than_the_network_can_read():
+    from topometric_ros.grid import MIN_COLUMNS
+
+    pts = _beams(np.linspace(-15, 15, 16), per_beam=16)
+    assert MIN_COLUMNS == 64 and scan_grid(pts, columns=16).width == 64 and scan_grid(pts).width == 64
+    assert scan_grid(_beams(np.linspace(-15, 15, 16), per_beam=1800)).width == 1800
 
 
 def test_a_bad_beam_id_drops_that_point_not_the_scan():

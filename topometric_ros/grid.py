@@ -9,14 +9,15 @@ Rows, 0 = the lowest beam, from the first of:
 2. a named sensor's beam table (sensors.py): each point to the beam of nearest elevation;
 3. the scan's own elevation clusters (no sensor named, no ring field): beams are the gaps in the sorted
    elevations of the scan's far points;
-4. a non-repetitive pattern (a sensor named so, or a scan whose elevations form no beams): uniform
+4. a non-repetitive pattern (a sensor named so, else a cloud in a driver layout only such sensors use, e.g.
+   livox_ros_driver2's, else a scan whose elevations form no beams): uniform
    elevation bins, no beams needed, and as many azimuth cells as make them square (a sparse pattern then
    puts a few points in each cell, which the tiles of the plane detector need). The network's image of such a
    grid has finer columns (image_columns: about one pixel per point, as a spinning sensor's image has), placed
    by each point's azimuth as fired (``azimuth``, kept for these grids only).
 Columns: ``width`` azimuth cells of 2π / width, column 0 centred on the sensor's +x axis, counter-clockwise; width
 is the sensor's firings per revolution (named sensor, or the organised cloud's width, or estimated from
-the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit.
+the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit, and at least MIN_COLUMNS.
 """
 from __future__ import annotations
 
@@ -25,7 +26,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from .sensors import layout_pattern
+
 GRID_ALIGN = 8  # width multiple (the network folds 4 columns and halves them once)
+MIN_COLUMNS = 64  # no LiDAR fires fewer times per revolution; the network's circular padding needs this many
 MAX_BEAMS = 256  # beam ids at or above this are bad (no LiDAR has more beams)
 MAX_COLUMNS = 4096  # firings per revolution an unnamed sensor's grid may have (2x the finest model; garbage beyond)
 NON_REPETITIVE_ROWS = 32  # elevation bins of a non-repetitive scan
@@ -91,8 +95,8 @@ def cell_points(row, col, height, width):
 
 
 def aligned(width: int) -> int:
-    """``width`` rounded up to a multiple of GRID_ALIGN (at least GRID_ALIGN)."""
-    return max(GRID_ALIGN, -(-int(width) // GRID_ALIGN) * GRID_ALIGN)
+    """``width`` rounded up to a multiple of GRID_ALIGN (at least MIN_COLUMNS)."""
+    return max(MIN_COLUMNS, -(-int(width) // GRID_ALIGN) * GRID_ALIGN)
 
 
 def as_grid(points: np.ndarray, grid_or_beam=None, model=None) -> ScanGrid:
@@ -102,14 +106,16 @@ def as_grid(points: np.ndarray, grid_or_beam=None, model=None) -> ScanGrid:
     return scan_grid(points, grid_or_beam, model=model)
 
 
-def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int = 0, model=None) -> ScanGrid:
+def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int = 0, model=None,
+              layout: str = "") -> ScanGrid:
     """The grid of one scan: (N, 3) sensor-frame points (m), optional (N,) beam ids from the cloud (ids must be
-    < MAX_BEAMS; the Monitor drops points with bad ids), ``columns`` of an organised cloud (0 = unknown) and an
-    optional sensors.SensorModel. See the module docstring for the order in which rows are found."""
+    < MAX_BEAMS; the Monitor drops points with bad ids), ``columns`` of an organised cloud (0 = unknown), an
+    optional sensors.SensorModel and the cloud's driver layout name (sensors.LAYOUTS; '' unknown, a named model
+    wins). See the module docstring for the order in which rows are found."""
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     if len(pts) == 0:
-        return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, GRID_ALIGN, np.full(1, np.nan), "empty")
-    non_repetitive = model is not None and model.pattern == "non_repetitive"
+        return ScanGrid(np.zeros(0, np.int32), np.zeros(0, np.int32), 1, aligned(0), np.full(1, np.nan), "empty")
+    non_repetitive = (model.pattern if model is not None else layout_pattern(layout)) == "non_repetitive"
     az, azimuth = np.arctan2(pts[:, 1], pts[:, 0]), None  # azimuth: kept for a non-repetitive grid only
     row_el = None  # each row's median elevation (deg), when _rows_from_beams found it on the way
     if beam is not None and not non_repetitive:  # rows from the ids: elevations of a sample suffice
@@ -121,8 +127,8 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
         else:
             centres = None if non_repetitive else beam_centres(pts, el)
             if centres is None:
-                fov = model.fov_deg if non_repetitive else (float(el.min()), float(el.max()))
-                rows = model.grid_rows if non_repetitive else NON_REPETITIVE_ROWS
+                fov = model.fov_deg if model is not None else (float(el.min()), float(el.max()))
+                rows = model.grid_rows if model is not None else NON_REPETITIVE_ROWS
                 row, height, source = _bins(el, fov, rows), rows, "elevation bins (non-repetitive)"
                 columns = square_cells(fov, rows)  # no firings per revolution: cells as wide as they are tall
                 azimuth = az  # the network image's finer columns (image_columns)
@@ -203,19 +209,21 @@ def _medians(beam: np.ndarray, el: np.ndarray, ids: np.ndarray) -> np.ndarray:
 
 def beam_centres(points: np.ndarray, el: np.ndarray | None = None) -> np.ndarray | None:
     """Elevations (deg, ascending) of the beams a spinning LiDAR's scan shows, or None when its elevations
-    form no beams (a non-repetitive pattern): the sorted elevations of points beyond CLUSTER_MIN_RANGE split
+    form no beams (a non-repetitive pattern: fewer than MIN_BEAMS or more than MAX_BEAMS clusters, or one
+    wider than a beam): the sorted elevations of points beyond CLUSTER_MIN_RANGE split
     at gaps >= BEAM_GAP_DEG; near points far from every such beam (steep beams that only hit the floor close
     by) add beams of their own."""
     el = elevation_deg(points) if el is None else el
     far = np.linalg.norm(points, axis=1) >= CLUSTER_MIN_RANGE
     centres = _clusters(el[far] if far.sum() >= 100 else el)
-    if centres is None or len(centres) < MIN_BEAMS:
+    if centres is None or not MIN_BEAMS <= len(centres) <= MAX_BEAMS:
         return None
     spacing = float(np.median(np.diff(centres))) if len(centres) > 1 else 1.0
     near = el[~far]
     lone = near[np.abs(near[:, None] - centres[None]).min(axis=1) > max(BEAM_GAP_DEG, 0.4 * spacing)] if len(near) else near
     extra = _clusters(lone, min_size=max(3, int(0.001 * len(el)))) if len(lone) else None
-    return centres if extra is None else np.sort(np.concatenate([centres, extra]))
+    centres = centres if extra is None else np.sort(np.concatenate([centres, extra]))
+    return centres if len(centres) <= MAX_BEAMS else None
 
 
 def _clusters(el: np.ndarray, min_size: int = 0) -> np.ndarray | None:

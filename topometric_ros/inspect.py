@@ -98,7 +98,8 @@ def _inspect_one(k: int, msg, config: Config, model, segmenter, out: Path | None
                time_field="yes" if scan.time is not None else "no", notes="; ".join(scan.notes))
     if len(scan.points) == 0:
         return {**row, "error": "no returns"}
-    frame = Frame(scan.points, np.eye(4), scan.stamp, scan.labels, scan.beam, scan.intensity, scan.time, scan.columns)
+    frame = Frame(scan.points, np.eye(4), scan.stamp, scan.labels, scan.beam, scan.intensity, scan.time, scan.columns,
+                  layout=scan.layout)
     t0 = time.perf_counter()
     seg = segment_scan(frame, config, segmenter, k)
     planes, assign = detect_planes(seg.frame.points, seg.labels, seg.grid, config.planes, k, return_inliers=True)

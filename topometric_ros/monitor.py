@@ -62,6 +62,7 @@ class _Scan:
     columns: int = 0
     sweep: tuple | None = None  # (t_min, t_max, period_s, stamp_at)
     received: float | None = None  # caller's clock (node or bag time), for the failure check
+    layout: str = ""  # driver layout name (sensors.LAYOUTS), '' unknown
 
 
 def extrinsic_from_list(values: Sequence[float]) -> np.ndarray:
@@ -336,7 +337,7 @@ class Monitor:
         self.layout = scan.layout or self.layout
         extra = {"labels": scan.labels, "ring": scan.beam, "intensity": scan.intensity, "time": scan.time}
         return self._accept(scan.stamp, scan.points, extra, received, finite=True, columns=scan.columns,
-                            sweep=self._sweep(scan.time, scan.layout))
+                            sweep=self._sweep(scan.time, scan.layout), layout=scan.layout)
 
     def _sweep(self, time: np.ndarray | None, layout: str) -> tuple | None:
         """(t_min, t_max, period_s, stamp_at) of the sweep to deskew, or None (deskew.sweep_to_deskew)."""
@@ -406,7 +407,7 @@ class Monitor:
                             sweep=self._sweep(None if time is None else np.asarray(time), ""))
 
     def _accept(self, stamp, points, extra: dict, received, finite: bool, columns: int = 0,
-                sweep: tuple | None = None) -> bool:
+                sweep: tuple | None = None, layout: str = "") -> bool:
         self.count("scans_in")
         clock = _clock(stamp, received)
         if clock is not None:  # a scan arrived, even if it fails below (failing, not STALE)
@@ -418,7 +419,7 @@ class Monitor:
         if fault:  # a cloud on another clock would get another moment's pose: drift that is not there
             self._clock_fault("dropped_clock", fault, received)
             return False
-        scan.columns, scan.sweep = columns, sweep
+        scan.columns, scan.sweep, scan.layout = columns, sweep, layout
         if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
             if scan.stamp == self._last_scan_stamp:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
@@ -498,7 +499,7 @@ class Monitor:
                             scan.received)
                 continue
             frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity,
-                          scan.time, scan.columns, self._motion(scan))
+                          scan.time, scan.columns, self._motion(scan), scan.layout)
             self._submit(frame, scan.arrived, scan.received)
 
     def _motion(self, scan: _Scan):

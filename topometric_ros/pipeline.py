@@ -198,7 +198,7 @@ def segment_scan(frame: Frame, config: Config, segmenter=None, index: int = -1) 
     if labels is not None and len(labels) != len(frame.points):
         raise ValueError(f"scan at {frame.stamp}: {len(labels)} labels for {len(frame.points)} points")
     with timer("grid"):
-        grid = scan_grid(frame.points, frame.ring, frame.columns, sensor_model(config))
+        grid = scan_grid(frame.points, frame.ring, frame.columns, sensor_model(config), frame.layout)
     if frame.motion is not None:
         with timer("deskew"):
             m = frame.motion

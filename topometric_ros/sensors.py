@@ -27,6 +27,7 @@ class DriverLayout:
     with NaN x/y/z), 'dropped' or 'zero' (kept at 0, 0, 0). time_field, time_unit ('s' or 'ns') and
     time_absolute: the per-point time; stamp: 'first' or 'last' - the point time header.stamp is.
     ring_top_first: ring 0 is the highest beam. padding: {offset: float32 value} bytes the driver fills.
+    pattern: 'spinning' (beams) or 'non_repetitive' (a driver only such sensors use: their scans have no rows).
     """
 
     name: str
@@ -42,6 +43,7 @@ class DriverLayout:
     ring_top_first: bool
     frame_id: str
     padding: tuple = ()
+    pattern: str = "spinning"
 
 
 LAYOUTS = {
@@ -67,7 +69,8 @@ LAYOUTS = {
     "livox": DriverLayout("livox", (("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32),
                                     ("intensity", 12, FLOAT32), ("tag", 16, UINT8), ("line", 17, UINT8),
                                     ("timestamp", 18, FLOAT64)),
-                          26, "", "zero", "timestamp", "ns", True, "first", None, False, "livox_frame"),
+                          26, "", "zero", "timestamp", "ns", True, "first", None, False, "livox_frame",
+                          pattern="non_repetitive"),
 }
 
 
@@ -203,3 +206,10 @@ def layout_of(field_names) -> DriverLayout | None:
         if {f[0] for f in layout.fields} <= names:
             return layout
     return None
+
+
+def layout_pattern(name: str) -> str:
+    """The scan pattern ('spinning', 'non_repetitive') of the sensors that driver layout ``name`` serves, '' when
+    the layout is unknown."""
+    layout = LAYOUTS.get(name)
+    return layout.pattern if layout is not None else ""

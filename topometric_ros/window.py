@@ -26,7 +26,8 @@ class Frame:
     ring: optional (N,) beam id as the cloud gives it (ring field, else the organised row; grid.py orders
     them by elevation), intensity: optional (N,) float32.
     time: optional (N,) float32 s of each point relative to ``stamp``; columns: firings per revolution of an
-    organised cloud (0 = unknown); motion: deskew.SweepMotion when the points are to be deskewed.
+    organised cloud (0 = unknown); motion: deskew.SweepMotion when the points are to be deskewed; layout: the
+    cloud's driver layout name (sensors.LAYOUTS, '' unknown).
     """
 
     points: np.ndarray
@@ -38,6 +39,7 @@ class Frame:
     time: np.ndarray | None = None
     columns: int = 0
     motion: Any = None
+    layout: str = ""
 
     def __len__(self) -> int:
         return len(self.points)

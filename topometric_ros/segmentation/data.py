@@ -40,7 +40,7 @@ def read_scans(bag_path: str | Path, topic: str = "", every: int = 1, limit: int
         if i % every:
             continue
         scan = read_scan(msg)
-        grid = scan_grid(scan.points, scan.beam, scan.columns)
+        grid = scan_grid(scan.points, scan.beam, scan.columns, layout=scan.layout)
         yield LabelledScan(scan.points, grid, scan.intensity, scan.labels, t_ns)
         n += 1
         if limit and n >= limit:

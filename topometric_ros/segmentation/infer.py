@@ -244,10 +244,10 @@ class Segmenter:
         self.backend = "onnxruntime" if backend == "onnxruntime" and self.device.type == "cpu" else "eager"
         self._int8_ranges = int8_ranges if self.backend == "onnxruntime" and passes == 1 else None
         self.precision = "float32" if self._int8_ranges is None else "int8"
-        self._onnx: dict[tuple[int, int, bool], _OnnxRunner] = {}
+        self._onnx: dict[tuple[int, int, bool], _OnnxRunner | None] = {}  # None: that shape runs eager
         self._pattern_float32 = False  # the int8 check failed for non-repetitive scans: they run float32
         if self.backend == "onnxruntime":
-            self._runner(*PROBE_SHAPE)  # fail over to eager now, not on the first scan
+            self._runner(*PROBE_SHAPE, probe=True)  # fail over to eager now, not on the first scan
 
     @classmethod
     def from_config(cls, cfg: SegmentationConfig) -> "Segmenter":
@@ -319,31 +319,42 @@ class Segmenter:
                 return runner(images)
         return self._run_eager(images, non_repetitive)
 
-    def _runner(self, height: int, width: int, non_repetitive: bool = False) -> "_OnnxRunner | None":
-        """The ONNX Runtime export for images of this shape (and pattern) (made and checked once); on failure
-        the Segmenter switches to eager PyTorch with a warning and returns None."""
+    def _runner(self, height: int, width: int, non_repetitive: bool = False, probe: bool = False
+                ) -> "_OnnxRunner | None":
+        """The ONNX Runtime export for images of this shape (and pattern), made and checked once: int8 when the
+        Segmenter runs int8, else float32; None: this shape runs eager. A failed export warns and falls back
+        for that shape alone (int8 -> float32 -> eager), except at the ``probe`` (construction), where it
+        switches the whole Segmenter (``precision``, ``backend``); a failed int8 export of a non-repetitive
+        scan (its own statistics, ranges calibrated without them) makes all such scans float32."""
         key = (int(height), int(width), bool(non_repetitive) and self.has_pattern_stats)
-        scorer = self._scorers[key[2]]
-        if key not in self._onnx and self.precision == "int8" and not (key[2] and self._pattern_float32):
+        if key in self._onnx:
+            return self._onnx[key]
+        scorer, shape = self._scorers[key[2]], f"{key[0]}x{key[1]} images"
+        if self.precision == "int8" and not (key[2] and self._pattern_float32):
             try:
                 self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads, self._int8_ranges)
+                return self._onnx[key]
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
-                if key[2]:  # the ranges were calibrated with the shared statistics: float32 for these scans alone
-                    log.warning("segmentation: int8 network unavailable for non-repetitive scans (%s: %s); float32 "
-                                "for them", type(e).__name__, _first_line(e))
+                why = f"{type(e).__name__}: {_first_line(e)}"
+                if probe:
+                    log.warning("segmentation: int8 network unavailable (%s); using float32", why)
+                    self.precision = "float32"
+                elif key[2]:
+                    log.warning("segmentation: int8 network unavailable for non-repetitive scans (%s); float32 "
+                                "for them", why)
                     self._pattern_float32 = True
                 else:
-                    log.warning("segmentation: int8 network unavailable (%s: %s); using float32", type(e).__name__,
-                                _first_line(e))
-                    self.precision, self._onnx = "float32", {}
-        if key not in self._onnx:
-            try:
-                self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)
-            except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
-                log.warning("segmentation: onnxruntime backend unavailable (%s: %s); using eager PyTorch",
-                            type(e).__name__, _first_line(e))
-                self.backend, self.precision = "eager", "float32"
+                    log.warning("segmentation: int8 network unavailable for %s (%s); float32 for them", shape, why)
+        try:
+            self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)
+        except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
+            why = f"{type(e).__name__}: {_first_line(e)}"
+            if probe:
+                log.warning("segmentation: onnxruntime backend unavailable (%s); using eager PyTorch", why)
+                self.backend, self.precision, self._onnx = "eager", "float32", {}
                 return None
+            log.warning("segmentation: onnxruntime export failed for %s (%s); eager PyTorch for them", shape, why)
+            self._onnx[key] = None
         return self._onnx[key]
 
     @torch.inference_mode()
