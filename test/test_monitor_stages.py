@@ -32,7 +32,7 @@ def test_the_two_stages_compose_to_process_scan():
     for k, f in enumerate(frames):
         whole = process_scan(f, cfg, index=k)
         staged = plane_scan(segment_scan(f, cfg, index=k), cfg)
-        assert staged.index == whole.index == k and len(staged.planes) == len(whole.planes) > 5
+        assert staged.index == whole.index == k and len(staged.planes) == len(whole.planes) >= 3  # a scan with planes
         for a, b in zip(staged.plane_arrays(), whole.plane_arrays()):
             np.testing.assert_array_equal(a, b)
         assert len(staged.labels) < len(f.points)  # the voxel step ran in stage 1
