@@ -28,8 +28,9 @@ from .trajectory import random_trajectory
 START_TIME = 1_700_000_000.0  # s, bag time of the first scan
 #: Version of what the simulator writes for a given SimConfig, kept in truth.json so caches of simulated bags
 #: notice a change. 2: the heading turns at a bounded rate (sim/trajectory.py MAX_YAW_RATE_DEG). 3: any
-#: sensor in its driver's layout, motion distortion.
-SIM_VERSION = 3
+#: sensor in its driver's layout, motion distortion. 4: free space marks every cell a wall overlaps (routes
+#: drove through 0.15 m walls that fell between cell centres).
+SIM_VERSION = 4
 BASE_FRAME, MAP_FRAME = "base_link", "map"
 
 
