@@ -335,7 +335,7 @@ class Segmenter:
                 self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads, self._int8_ranges)
                 return self._onnx[key]
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
-                why = f"{type(e).__name__}: {_first_line(e)}"
+                why = _reason(e)
                 if probe:
                     log.warning("segmentation: int8 network unavailable (%s); using float32", why)
                     self.precision = "float32"
@@ -348,10 +348,10 @@ class Segmenter:
         try:
             self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)
         except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
-            why = f"{type(e).__name__}: {_first_line(e)}"
+            why = _reason(e)
             if probe:
                 log.warning("segmentation: onnxruntime backend unavailable (%s); using eager PyTorch", why)
-                self.backend, self.precision, self._onnx = "eager", "float32", {}
+                self.backend, self.precision = "eager", "float32"
                 return None
             log.warning("segmentation: onnxruntime export failed for %s (%s); eager PyTorch for them", shape, why)
             self._onnx[key] = None
@@ -363,8 +363,9 @@ class Segmenter:
         return read_out(self._scorers[bool(non_repetitive)](x).float().cpu().numpy())
 
 
-def _first_line(e: Exception) -> str:
-    return str(e).splitlines()[0] if str(e) else ""
+def _reason(e: Exception) -> str:
+    """'ExceptionName: first line of its message', for a one-line warning."""
+    return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
 
 
 def _int8_ranges(cfg: SegmentationConfig, weights: Path, digest: str) -> dict | None:
