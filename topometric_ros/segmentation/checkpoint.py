@@ -41,6 +41,11 @@ def torch_device(name: str, what: str = "device", choices: str = "cpu or cuda") 
     return dev
 
 
+def one_line_reason(e: Exception) -> str:
+    """'ExceptionName: first line of its message', for a one-line error or warning."""
+    return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+
+
 def load_weights(path: str | Path) -> tuple[dict, dict]:
     """(model card, state dict) of a weights file, loaded without executing code."""
     path = Path(path)
@@ -50,7 +55,7 @@ def load_weights(path: str | Path) -> tuple[dict, dict]:
         doc = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # UnpicklingError, RuntimeError (zip), EOFError, ... for garbage or unsafe pickles
         raise SegmentationError(f"cannot load segmentation weights {path}: not a safe torch weights file "
-                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+                                f"({one_line_reason(e)})") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("model_card"), dict) or not isinstance(doc.get("state_dict"), dict):
         raise SegmentationError(f"{path}: expected {{'model_card': dict, 'state_dict': dict}}, got {type(doc).__name__}"
                                 + (f" with keys {sorted(map(str, doc))}" if isinstance(doc, dict) else ""))

@@ -26,7 +26,8 @@ from .. import classes as C
 from ..config import SegmentationConfig
 from .model import RangeNet, fold_batchnorm
 from .projection import CHANNELS, Projection, beam_stride, checked, nearest_strided, project, strided
-from .checkpoint import SHIPPED, SegmentationError, beside, build_model, load_weights, state_digest, torch_device
+from .checkpoint import (SHIPPED, SegmentationError, beside, build_model, load_weights, one_line_reason, state_digest,
+                         torch_device)
 from .floor import lift_off_floor, snap_to_floor
 from .knn import knn_vote
 from .norm_stats import NORM_NAME, load_stats, with_stats
@@ -335,7 +336,7 @@ class Segmenter:
                 self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads, self._int8_ranges)
                 return self._onnx[key]
             except Exception as e:  # an ONNX Runtime without calibration caches, a failed check, ...
-                why = _reason(e)
+                why = one_line_reason(e)
                 if probe:
                     log.warning("segmentation: int8 network unavailable (%s); using float32", why)
                     self.precision = "float32"
@@ -348,7 +349,7 @@ class Segmenter:
         try:
             self._onnx[key] = _OnnxRunner(scorer, *key[:2], self.threads)
         except Exception as e:  # no onnxruntime, an export the runtime rejects, or a failed check
-            why = _reason(e)
+            why = one_line_reason(e)
             if probe:
                 log.warning("segmentation: onnxruntime backend unavailable (%s); using eager PyTorch", why)
                 self.backend, self.precision = "eager", "float32"
@@ -361,11 +362,6 @@ class Segmenter:
     def _run_eager(self, images: np.ndarray, non_repetitive: bool = False) -> tuple[np.ndarray, np.ndarray]:
         x = torch.from_numpy(np.ascontiguousarray(images, np.float32)).to(self.device, non_blocking=True)
         return read_out(self._scorers[bool(non_repetitive)](x).float().cpu().numpy())
-
-
-def _reason(e: Exception) -> str:
-    """'ExceptionName: first line of its message', for a one-line warning."""
-    return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
 
 
 def _int8_ranges(cfg: SegmentationConfig, weights: Path, digest: str) -> dict | None:
