@@ -93,8 +93,8 @@ def test_a_bag_with_no_window_fails_and_a_damaged_one_that_gives_windows_is_note
     assert main(["audit", str(bags), "--out", str(out), "--engine", "local", "--quiet", *LABELS]) == 1
     printed = capsys.readouterr().out
     assert "audit: 2 bags: 1 done, 0 cached, 1 failed" in printed
-    assert ("FAILED short: no window: 3 scans processed, fewer than a window of window.size = 5; replay with "
-            "--window-size 3") in printed
+    assert ("FAILED short: no window: 3 scans processed, fewer than a window of 5 scans (automatic: 1 s at 5 Hz); "
+            "replay with --window-size 3") in printed
     assert "  note cut: damaged bag: " in printed
     rows = {r["bag"]: r for r in json.loads((out / "fleet.json").read_text())["bags"]}
     assert rows["cut"]["status"] == "ok" and rows["cut"]["windows"] >= 1

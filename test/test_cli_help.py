@@ -11,7 +11,7 @@ def test_replay_help_in_a_real_process_shows_defaults():
     out = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "replay", "--help"], capture_output=True,
                          text=True, check=True, env={"COLUMNS": "200", "PATH": ""}).stdout
     out = " ".join(out.split())
-    for shown in ("(default: max)", "(default: /odom_gt)", "default: the config's window.size, 5)",
+    for shown in ("(default: max)", "(default: /odom_gt)", "default: the config's window.size, 0)",
                   "(default: the config's segmentation.mode, network)"):
         assert shown in out, (shown, out)
 
@@ -49,7 +49,7 @@ def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
 
 def test_counts_that_must_be_positive_are_refused_before_anything_runs():
     """--frames 0 used to end in an IndexError traceback, --every 0 and --rate 0 in a division by zero,
-    --window-size 0 in the default window size, alarms --speeds 0 or --estimates orb in a run of simulations:
+    --window-size 0 in the default window size (0 is automatic now), alarms --speeds 0 or --estimates orb in a run of simulations:
     each is a one-line error now (exit 2), before anything runs."""
     from topometric_ros.cli import build_parser
 
@@ -61,8 +61,9 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["demo", "--frames", "-3"], "argument --frames: expected a whole number >= 1"),
                         (["inspect", "bag", "--every", "0"], "argument --every: expected a whole number >= 1"),
                         (["eval-seg", "bag", "--every", "x"], "argument --every: expected a whole number >= 1"),
-                        (["replay", "bag", "--out", "o", "--window-size", "0"], "'window.size' = 0 is out of range"),
-                        (["replay", "bag", "--out", "o", "--window-size", "1"], "'window.size' = 1 is out of range"),
+                        (["replay", "bag", "--out", "o", "--window-size", "-1"], "'window.size' = -1 is out of range"),
+                        (["replay", "bag", "--out", "o", "--window-size", "1"],
+                         "'window.size' = 1: a window needs 2 scans or more; 0 = automatic"),
                         (["evaluate", "--win", "5,1"], "argument --win: expected whole numbers >= 2, got '5,1'"),
                         (["simulate", "--split", "--train", "0", "--test", "0", "--out", "x"], "writes no bag"),
                         (["evaluate", "--scales", "0"], "argument --scales: expected numbers > 0, got '0'"),

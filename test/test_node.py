@@ -41,7 +41,7 @@ PLAYER = Path(__file__).resolve().parent / "ros_player.py"
 NODE = "topometric_monitor"
 CONSISTENCY = f"{NODE}: map consistency"
 LEVEL_NAMES = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
-BASE = {"segmentation.mode": "labels", "window.size": 5, "health.stale_after_s": 3.0}
+BASE = {"segmentation.mode": "labels", "health.stale_after_s": 3.0}  # window.size: the default (automatic, 1 s)
 BASE_WINDOWS = 10  # health.baseline_windows (default): windows before the sigma alarms start
 
 
@@ -270,6 +270,18 @@ def test_drift_bag_alarms_inside_every_episode_and_ok_elsewhere(drift_run):
                                                       for ep in episodes)]
     assert len(calm) >= 10 and all(w["level"] == "OK" for w in calm), [(w["end"], w["level"]) for w in calm]
 
+
+
+def test_the_default_window_is_a_second_of_scans_set_from_the_streams_stamps(drift_run):
+    """No window.size given: the node starts with an automatic window, reads the 5 Hz stream's period off its
+    first stamps and holds 5 scans (1 s) a window, as the replay of the same bag does."""
+    assert "window automatic: 1 s of scans, set from the first 3 scans' stamps" in drift_run["log"]
+    assert "window: 5 scans (automatic: 1 s at 5 Hz)" in drift_run["log"]  # logged with the first window
+    assert all(w["values"]["window_scans"] == "5" for w in drift_run["live"])
+    spans = [w["end"] - w["start"] for w in drift_run["live"]]
+    assert spans and all(abs(span - 0.8) < 1e-6 for span in spans), sorted(set(spans))
+    assert len(drift_run["replay"]) == 40 and all(
+        abs(w["end"] - w["start"] - 0.8) < 1e-6 for w in drift_run["replay"])
 
 
 def test_drift_bag_levels_equal_replay_in_95_percent_of_windows(drift_run):
@@ -626,8 +638,8 @@ def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, t
 # -------------------------------------------------------------------- parameters
 @pytest.mark.parametrize("bad, words", [
     ({"health.stale_after_s": 0}, ["health.stale_after_s", "out of range"]),  # int for a float leaf
-    ({"window.size": 0.0}, ["window.size", "out of range"]),  # float for an int leaf
-    ({"window.size": 1}, ["parameter 'window.size' = 1 is out of range [2, 200]"]),  # rclpy's own check first
+    ({"window.size": 500.0}, ["window.size", "out of range"]),  # float for an int leaf
+    ({"window.size": 1}, ["parameter 'window.size' = 1: a window needs 2 scans or more; 0 = automatic"]),
     ({"window.sise": 10}, ["unknown parameter", "window.sise"]),
     ({"segmentation.mode": "magic"}, ["segmentation.mode", "one of"]),
 ])

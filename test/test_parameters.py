@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize("name, value", [
     ("health.stale_after_s", 0),  # an int for a float leaf: rclpy's floating_point_range would not apply
     ("health.stale_after_s", 0.0),
-    ("window.size", 0),
+    ("window.size", -1),
     ("window.size", 500.0),  # a float for an int leaf
     ("segmentation.threads", -1),
     ("diagnostic_updater.period", 0),
@@ -26,6 +26,11 @@ def test_out_of_range_values_are_refused_whatever_their_type(name, value):
 def test_in_range_values_and_choices():
     parameters.check("health.stale_after_s", 5)
     parameters.check("window.size", 10)
+    parameters.check("window.size", 0)  # automatic
+    with pytest.raises(ValueError, match=r"'window\.size' = 1: a window needs 2 scans or more; 0 = automatic"):
+        parameters.check("window.size", 1)
+    with pytest.raises(ValueError, match=r"'window\.size' = 1: a window needs 2 scans or more"):
+        config.load_config(overrides={"window.size": 1})
     parameters.check("points_qos", "reliable")
     with pytest.raises(ValueError, match="'segmentation.mode' = 'magic' must be one of: network, labels, none"):
         parameters.check("segmentation.mode", "magic")

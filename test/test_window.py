@@ -95,6 +95,39 @@ def test_backwards_or_repeated_stamp_restarts_the_window():
 
 def test_bad_sizes_are_rejected():
     with pytest.raises(ValueError):
-        SlidingWindow(0)
+        SlidingWindow(-1)
     with pytest.raises(ValueError):
         SlidingWindow(3, -1)
+    with pytest.raises(ValueError, match="duration"):
+        SlidingWindow(0, 0, 0.0)
+
+
+@pytest.mark.parametrize("rate_hz, duration_s, size", [(10, 1.0, 10), (5, 1.0, 5), (20, 1.0, 20), (10, 0.5, 5),
+                                                        (1, 1.0, 3), (1000, 1.0, 200)])
+def test_an_automatic_window_holds_duration_s_of_scans_at_the_streams_rate(rate_hz, duration_s, size):
+    w = SlidingWindow(0, 0, duration_s)
+    assert w.size is None and "automatic" in w.describe()
+    out = [win for i in range(3 * size) if (win := w.push(i, 100.0 + i / rate_hz)) is not None]
+    assert w.size == size and w.step == size and w.scan_period_s == pytest.approx(1 / rate_hz)
+    assert out == [list(range(k * size, (k + 1) * size)) for k in range(3)]  # the probe's scans are the first window's
+    bound = {3: ", at least 3", 200: ", at most 200"}.get(size, "") if size != rate_hz * duration_s else ""
+    assert w.describe() == f"{size} scans (automatic: {duration_s:g} s at {rate_hz:.3g} Hz{bound})"
+
+
+def test_an_automatic_window_reads_the_rate_through_a_dropped_scan_jitter_and_a_restart():
+    w = SlidingWindow(0, 2)
+    stamps = [0.0, 0.2, 0.3]  # the scan at 0.1 s never arrived: the interval of 0.2 s is not taken for a period
+    assert [w.push(s, s) for s in stamps] == [None] * 3
+    assert w.size == 10 and w.step == 2 and w.describe() == "10 scans (automatic: 1 s at 10 Hz), one every 2 scans"
+    w = SlidingWindow(0)
+    for s in (0.0, 0.092, 0.2):  # stamps 8 ms early and on time: the median period, not the shortest (11 scans)
+        w.push(s, s)
+    assert w.size == 10 and w.scan_period_s == pytest.approx(0.1)
+    w = SlidingWindow(0)
+    w.push("a", 5.0)
+    w.push("b", 5.1)
+    w.push("c", 1.0)  # the bag looped before the size was set: the probe starts again with the window
+    assert w.size is None and w.discarded == 1
+    w.push("d", 1.25)
+    w.push("e", 1.5)
+    assert w.size == 4 and w.push("f", 1.75) == ["c", "d", "e", "f"]

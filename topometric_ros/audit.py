@@ -48,9 +48,9 @@ AUDIT_FORMAT = 1
 LEVELS = ("OK", "WARN", "ERROR")
 _RANK = {"OK": 0, "WARN": 1, "ERROR": 2}
 #: the columns of fleet.csv / index.html, in order
-COLUMNS = ("bag", "status", "reason", "duration_s", "scans", "windows", "ok", "warn", "error", "worst_level",
-           "worst_time_s", "worst_reason", "rot_rate_p50", "rot_rate_p99", "trans_rate_p50", "trans_rate_p99",
-           "episodes_alarmed", "notes", "wall_s", "cached", "worker", "path", "metrics_png")
+COLUMNS = ("bag", "status", "reason", "duration_s", "scans", "window_scans", "windows", "ok", "warn", "error",
+           "worst_level", "worst_time_s", "worst_reason", "rot_rate_p50", "rot_rate_p99", "trans_rate_p50",
+           "trans_rate_p99", "episodes_alarmed", "notes", "wall_s", "cached", "worker", "path", "metrics_png")
 #: config leaves that cannot change a window's result (left out of the config digest)
 NOT_IN_KEY = ("segmentation.weights", "window.pipelined")
 
@@ -274,6 +274,7 @@ def fleet_row(task: BagTask, records: list[dict], summary: dict) -> dict:
     t0 = records[0]["start"] if records else 0.0
     row = {"bag": task.name, "status": "failed" if failed else "ok", "reason": failed,
            "duration_s": summary.get("bag_s"), "scans": summary.get("scans_processed"),
+           "window_scans": summary.get("window_scans"),
            "windows": len(records), **{lv.lower(): levels.count(lv) for lv in LEVELS},
            "worst_level": worst["level"] if worst else None,
            "worst_time_s": round(worst["end"] - t0, 3) if worst else None,
@@ -388,7 +389,7 @@ def audit(bags: list[str | Path], out: str | Path, config: Config | None = None,
                "engine": engine, "workers": workers if engine == "ray" and not address else None,
                "address": address or None, "wall_s": round(time.perf_counter() - started, 3),
                "config_digest": config_digest(config), "weights_digest": network_digest(config),
-               "segmentation": config.segmentation.mode, "window_size": config.window.size,
+               "segmentation": config.segmentation.mode, "window_size": config.window.setting(),
                "created": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     write_report(out, ordered, summary, config)
     return AuditResult(out, ordered, summary)
@@ -438,6 +439,11 @@ def _cell(row: dict, col: str) -> str:
     return f'<td data-v="{html.escape(str(v))}"{cls}>{html.escape(text)}</td>'
 
 
+def _scans(window_size: Any) -> str:
+    """A summary's window_size in words: "10 scans", or as written ("automatic (1 s)")."""
+    return f"{window_size} scans" if isinstance(window_size, int) else str(window_size)
+
+
 def render_html(rows: list[dict], summary: dict) -> str:
     """index.html: one self-contained page (inline CSS and JS, no network): the fleet table, sortable by
     clicking a header (numbers as numbers), level colours, each bag linking its metrics.png; failed bags
@@ -463,7 +469,7 @@ tr.st-failed td{{background:#fbe9e7}} {css}
 </style></head><body>
 <h1>topometric fleet audit</h1>
 <p id="summary">{s['bags']} bags: {s['done']} done, {s['cached']} cached, {s['failed']} failed; engine {html.escape(str(s['engine']))}{'' if s.get('workers') is None else f", {s['workers']} workers"}{'' if not s.get('address') else f", cluster {html.escape(str(s['address']))}"};
-segmentation {html.escape(str(s.get('segmentation')))}, window {s.get('window_size')} scans; config {str(s.get('config_digest'))[:12]};
+segmentation {html.escape(str(s.get('segmentation')))}, window {html.escape(_scans(s.get('window_size')))}; config {str(s.get('config_digest'))[:12]};
 {html.escape(str(s.get('created')))}. Rates: rotation °/s, translation m/s; worst_time_s: since the bag's first window's start.
 Click a header to sort (or open index.html#sort=COLUMN, #sort=-COLUMN descending); a bag's name opens its metrics.png.</p>
 <table id="fleet"><thead><tr>{head}</tr></thead>

@@ -111,8 +111,10 @@ def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | No
     p.add_argument("--config", help="YAML config (plain or ROS 2 parameter file, e.g. config/topometric.yaml; "
                                     "without it: the built-in defaults)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config leaf, e.g. window.size=10")
-    p.add_argument("--window-size", type=int, help=f"scans per window (paper: 5, 10, 15; default: the config's "
-                                                   f"window.size, {defaults.window.size})")
+    p.add_argument("--window-size", type=int, help=f"scans per window; 0 = automatic, the scans of window.duration_s "
+                                                   f"({defaults.window.duration_s:g} s) at the bag's own scan rate "
+                                                   f"(paper: 5, 10, 15; default: the config's window.size, "
+                                                   f"{defaults.window.size})")
     p.add_argument("--segmentation", choices=("network", "labels", "none"), default=segmentation_default,
                    help="where labels come from: network (the shipped segmentation), labels (the cloud's own label "
                         "field: simulated bags), none (every point static)"

@@ -18,7 +18,8 @@ from .sensors import SENSORS
 class WindowConfig:
     """Sliding window of scans and the pose lookup (window.py, monitor.py)."""
 
-    size: int = 5  # scans per window (paper: 5, 10, 15)
+    size: int = 0  # scans per window, 2 or more; 0 = automatic: the scans of duration_s at the stream's own scan rate (10 at 10 Hz; the alarms are calibrated on 1 s windows); the paper: 5, 10, 15
+    duration_s: float = 1.0  # s of scans an automatic window (size 0) holds (1 s: 10 scans at 10 Hz), its size set once from the first 3 scans' stamps
     step: int = 0  # scans between window starts; 0 = size (the paper's choice)
     pose_wait_s: float = 0.1  # a scan waits until odometry newer than its stamp + this arrives
     max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
@@ -28,6 +29,10 @@ class WindowConfig:
     pose_timeout_s: float = 2.0  # s of scan time a scan may wait for odometry before it is dropped
     pose_horizon_s: float = 30.0  # s of odometry kept for the lookup
     extrinsic: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # odom child -> sensor: x y z (m) qx qy qz qw; /tf_static wins when it has it
+
+    def setting(self) -> int | str:
+        """The window size as configured, for reports: scans, or "automatic (1 s)"."""
+        return self.size or f"automatic ({self.duration_s:g} s)"
 
 
 @dataclass
@@ -174,7 +179,8 @@ CHOICES = {"segmentation.mode": ("network", "labels", "none"), "segmentation.dev
 #: and the node alike). Others are unbounded.
 RANGES: dict[str, tuple[float, float]] = {
     # window
-    "window.size": (2, 200), "window.step": (0, 200), "window.pose_wait_s": (0.0, 10.0),
+    "window.size": (0, 200), "window.duration_s": (0.05, 60.0), "window.step": (0, 200),
+    "window.pose_wait_s": (0.0, 10.0),
     "window.max_pose_gap_s": (0.001, 10.0), "window.queue_size": (1, 1000), "window.voxel_size": (0.0, 5.0),
     "window.pose_timeout_s": (0.0, 60.0), "window.pose_horizon_s": (1.0, 3600.0),
     # sensor
@@ -203,6 +209,11 @@ RANGES: dict[str, tuple[float, float]] = {
     "health.noise_windows": (0, 100_000), "health.noise_quantile": (0.0, 1.0), "health.noise_margin": (0.0, 100.0),
     "health.noise_max_factor": (1.0, 1000.0), "health.min_planes": (0, 1_000_000),
     "health.agreement_warn": (0.0, 1.0),
+}
+
+#: Values inside a leaf's range that it still refuses, with why (checked by apply and the node alike).
+REFUSED: dict[str, dict[Any, str]] = {
+    "window.size": {1: "a window needs 2 scans or more; 0 = automatic (window.duration_s of scans)"},
 }
 
 
@@ -252,6 +263,8 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
             if name in RANGES and not RANGES[name][0] <= changes[key] <= RANGES[name][1]:
                 raise ValueError(f"config key {name!r} = {value!r} is out of range "
                                  f"[{RANGES[name][0]:g}, {RANGES[name][1]:g}]")
+            if name in REFUSED and changes[key] in REFUSED[name]:
+                raise ValueError(f"config key {name!r} = {value!r}: {REFUSED[name][changes[key]]}")
     return replace(obj, **changes)
 
 

@@ -223,7 +223,7 @@ class Monitor:
         self.on_window = on_window
         self.health = Health(self.config.health)
         self.poses = PoseBuffer(w.pose_horizon_s)
-        self.window = SlidingWindow(w.size, w.step)
+        self.window = SlidingWindow(w.size, w.step, w.duration_s)
         self.model = pipeline.sensor_model(self.config)  # sensors.SensorModel or None (layout read off each cloud)
         self.layout = ""  # driver layout of the last cloud (sensors.LAYOUTS name, "" unknown)
         self.last_note = ""  # why the last cloud's fields or points were not all used (an unusable time field, bad beams)

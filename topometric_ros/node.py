@@ -131,6 +131,7 @@ class MonitorNode(Node):
         self._lock = threading.Lock()
         self._last_window = None  # (level, message, values) of the newest window
         self._latency = {"last": float("nan"), "max": float("nan"), "windows": 0}
+        self._window_told = False  # the window's size logged (with the first window: an automatic size is set then)
         self._checked = (None, None)  # the last Monitor.check and clock_status outcomes published
         self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window)
         self.updater.setHardwareID(p["hardware_id"] or "none")
@@ -150,7 +151,7 @@ class MonitorNode(Node):
         self.create_timer(CHECK_PERIOD_S, self._on_check)
         self.get_logger().info(
             f"monitoring {self.resolve_topic_name(p['points_topic'])} + {self.resolve_topic_name(p['odom_topic'])}: "
-            f"window {self.config.window.size} scans, sensor {self.config.sensor.model or 'read off each cloud'}, "
+            f"window {self.monitor.window.describe()}, sensor {self.config.sensor.model or 'read off each cloud'}, "
             f"segmentation {self.config.segmentation.mode}"
             f"{network_options(self.config, getattr(segmenter, 'precision', ''))}, "
             f"diagnostics on /diagnostics as '{self.updater.node_name}: {TASK}'")
@@ -200,6 +201,9 @@ class MonitorNode(Node):
         """Worker thread: keep the window's status, publish it now (every window reaches /diagnostics)."""
         latency = self._now() - result.stamps[-1]
         values = window_values(result, self.monitor.counters, self._sources())
+        if not self._window_told:
+            self._window_told = True
+            self.get_logger().info(f"window: {self.monitor.window.describe()}")  # an automatic size is known now
         with self._lock:
             self._last_window = (result.level, result.message, values)
             lat = self._latency
@@ -231,8 +235,7 @@ class MonitorNode(Node):
             stat.summary(LEVELS[last[0]], last[1])
             values = last[2]
         else:
-            w = self.config.window
-            stat.summary(DiagnosticStatus.OK, f"waiting for the first window ({w.size} scans)")
+            stat.summary(DiagnosticStatus.OK, f"waiting for the first window ({self.monitor.window.describe()})")
             values = self._monitor_values()
         for key, value in values.items():
             stat.add(key, value)
@@ -260,8 +263,11 @@ class MonitorNode(Node):
         return {**{k: str(v) for k, v in self.monitor.counters.items()}, **self._sources()}
 
     def _sources(self) -> dict[str, str]:
-        """Where the extrinsic comes from, and why the last cloud's field was not used ("" none)."""
-        return {"extrinsic": self.monitor.extrinsic_source, "cloud_note": self.monitor.last_note}
+        """Where the extrinsic comes from, why the last cloud's field was not used ("" none), and the window's
+        size in scans ("" while an automatic size is not set)."""
+        size = self.monitor.window.size
+        return {"extrinsic": self.monitor.extrinsic_source, "cloud_note": self.monitor.last_note,
+                "window_scans": "" if size is None else str(size)}
 
     def _latency_task(self, stat):
         """The Updater's 'latency': scan stamp -> window result (node clock), worst since the last report."""

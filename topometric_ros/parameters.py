@@ -76,6 +76,8 @@ def check(name: str, value: Any) -> None:
         lo, hi = RANGES[name]
         if not lo <= value <= hi:
             raise ValueError(f"parameter {name!r} = {value!r} is out of range [{lo:g}, {hi:g}]")
+    if name in config_module.REFUSED and not isinstance(value, bool) and value in config_module.REFUSED[name]:
+        raise ValueError(f"parameter {name!r} = {value!r}: {config_module.REFUSED[name][value]}")
     choices = ALL_CHOICES.get(name, ())
     if isinstance(value, bool) and {"on", "off"} <= set(choices):
         value = "on" if value else "off"  # a bare on / off in YAML (rcl reads it as a boolean too)

@@ -31,6 +31,7 @@ from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor
 from .reports import csv_value, write_csv, write_json
+from .window import AUTO_PROBE, SlidingWindow
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DRAIN_POLL_S = 0.2  # s, how often the progress bar moves while the monitor finishes the last scans
@@ -197,7 +198,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     if c["bad_beam_points"]:
         notes.append(bad_beam_note(c["bad_beam_points"], monitor.model))
     if c["scans_processed"] and not records:
-        notes.append(_why_no_window(c, config.window.size, monitor.last_error))
+        notes.append(_why_no_window(c, monitor.window, monitor.last_error))
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
                    segmentation=config.segmentation.mode,
@@ -297,12 +298,17 @@ class _Feed:
             monitor.add_tf_static(msg)
 
 
-def _why_no_window(counters: dict, size: int, last_error: str) -> str:
-    """Why scans were processed but no window came out: too few for window.size, or windows lost (counted)."""
+def _why_no_window(counters: dict, window: SlidingWindow, last_error: str) -> str:
+    """Why scans were processed but no window came out: too few for the window (window.size, or an automatic
+    window's), or windows lost (counted)."""
     n = counters["scans_processed"]
-    if n < size:
+    if window.size is None and n >= AUTO_PROBE:
+        return (f"no window from {n} scans: the stream restarted {window.resets} times (stamps not newer than the "
+                f"last) before {AUTO_PROBE} scans in a row could set the automatic window's size")
+    if window.size is None or n < window.size:
         fix = f"replay with --window-size {n} (or a longer bag)" if n >= 2 else "a window needs at least 2 scans"
-        return f"no window: {n} scan{'s' * (n > 1)} processed, fewer than a window of window.size = {size}; {fix}"
+        what = f"of {window.describe()}" if window.size else f"({window.describe()})"
+        return f"no window: {n} scan{'s' * (n > 1)} processed, fewer than a window {what}; {fix}"
     return (f"no window from {n} scans: {counters['windows_discarded']} discarded, {counters['window_errors']} "
             f"failed; last error: {last_error or 'none'}")
 
@@ -412,6 +418,7 @@ def _summary(bag_path, monitor: Monitor, records: list[dict], feed: _Feed, notes
         "last_monitor_error": monitor.last_error,
         "cpu_ms_per_scan": {"reader": round(feed.reader_cpu_s * per_scan, 2),  # reading + decoding (this thread)
                             **{f"stage{i}": round(t * per_scan, 2) for i, t in enumerate(monitor.stage_cpu_s)}},
+        "window": monitor.window.describe(), "window_scans": monitor.window.size,
         "config": flatten(monitor.config),
     }
 
@@ -556,10 +563,10 @@ def _plot_title(summary: dict | None) -> str:
     """'topometric: map consistency per window — <bag>' and a line with segmentation, sensor and window."""
     s = summary or {}
     bag_name = Path(s.get("bag", "")).name or "?"
-    size = (s.get("config") or {}).get("window.size", "?")
+    window = s.get("window") or f"{(s.get('config') or {}).get('window.size', '?')} scans"
     return (f"topometric: map consistency per window — bag {bag_name}\n"
             f"segmentation {s.get('segmentation', '?')}, sensor {s.get('sensor', '?')}"
-            f"{', ' + s['layout'] + ' layout' if s.get('layout') else ''}, {size} scans per window")
+            f"{', ' + s['layout'] + ' layout' if s.get('layout') else ''}, window {window}")
 
 
 def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
@@ -616,6 +623,8 @@ def _run_lines(s: dict) -> list[str]:
              f"{s.get('segmentation_options', '')}",
              f"sensor         {s['sensor']}{layout}",
              f"topics         clouds {s['points_topic']}, odometry {s['odom_topic']}"]
+    if s.get("window"):
+        lines.append(f"window         {s['window']}")
     lines += [f"note           {n}" for n in s["notes"]]
     if s.get("clock_faults"):
         first = s["clock_faults"][0]

@@ -1,7 +1,8 @@
 """Frames, the odometry buffer and the sliding window of scans.
 
 A Frame is one scan with the pose SLAM gave it. PoseBuffer gives a scan the odometry pose interpolated at
-its stamp; SlidingWindow groups processed scans into windows of ``size`` every ``step`` scans.
+its stamp; SlidingWindow groups processed scans into windows of ``size`` every ``step`` scans (or of about a
+second of scans, the size set from the stream's own stamps).
 """
 from __future__ import annotations
 
@@ -144,20 +145,36 @@ class PoseBuffer:
         return b @ geometry.make_pose(rot, u[:, None] * step[:3, 3])
 
 
+#: Stamps that give an automatic window size the stream's scan period, and the fewest and most scans such a
+#: window holds (config.RANGES: 200).
+AUTO_PROBE, AUTO_MIN, AUTO_MAX = 3, 3, 200
+#: Intervals longer than this × the shortest are taken for dropped scans when the period is read.
+DROPPED = 1.5
+
+
 class SlidingWindow:
     """Consecutive items (processed scans) grouped into windows of ``size`` that start every ``step`` items.
 
-    ``push`` returns the completed window (a list) when the pushed item is a window's last, else None.
-    An item whose stamp is not newer than the previous one (bag loop, sim time reset, duplicate) restarts
-    the window: the partial window is discarded and counted in ``discarded``.
+    ``size`` 0: automatic, the scans of ``duration_s`` seconds at the stream's scan rate, set once from the
+    first AUTO_PROBE stamps (round(duration_s / period), AUTO_MIN to AUTO_MAX scans; the period: the median of
+    their intervals within DROPPED × the shortest, so neither a dropped scan nor stamp jitter moves it much);
+    until then ``size`` is None. ``push`` returns the completed window (a list) when the pushed item is a window's last,
+    else None. An item whose stamp is not newer than the previous one (bag loop, sim time reset, duplicate)
+    restarts the window: the partial window is discarded and counted in ``discarded``.
     """
 
-    def __init__(self, size: int, step: int = 0):
-        if size < 1:
-            raise ValueError(f"window size must be >= 1, got {size}")
+    def __init__(self, size: int, step: int = 0, duration_s: float = 1.0):
+        if size < 0:
+            raise ValueError(f"window size must be 0 (automatic) or >= 1, got {size}")
         if step < 0:
             raise ValueError(f"window step must be >= 0 (0 = size), got {step}")
-        self.size, self.step = int(size), int(step or size)
+        if size == 0 and not duration_s > 0:
+            raise ValueError(f"an automatic window needs a duration > 0 s, got {duration_s}")
+        self.duration_s, self._step = float(duration_s), int(step)
+        self.size: int | None = int(size) or None
+        self.step: int | None = int(step or size) or None
+        self.scan_period_s: float | None = None  # automatic size: the stream's scan period (s) it was set from
+        self._probe: list[float] = []  # automatic size: the stamps so far, until it is set
         self._items: deque = deque()
         self._skip = 0  # items still to skip before the next window starts (step > size)
         self._last_stamp: float | None = None
@@ -171,6 +188,7 @@ class SlidingWindow:
         if self._items:
             self.discarded += 1
         self._items.clear()
+        self._probe.clear()
         self._skip = 0
         self._last_stamp = None
 
@@ -184,7 +202,9 @@ class SlidingWindow:
             self._skip -= 1
             return None
         self._items.append(item)
-        if len(self._items) < self.size:
+        if self.size is None:
+            self._set_size(stamp)
+        if self.size is None or len(self._items) < self.size:
             return None
         window = list(self._items)
         drop = min(self.step, self.size)
@@ -192,3 +212,29 @@ class SlidingWindow:
             self._items.popleft()
         self._skip = self.step - drop
         return window
+
+    def describe(self) -> str:
+        """The window in words: "10 scans (automatic: 1 s at 10 Hz)", "5 scans", or, automatic and not set yet,
+        "automatic: 1 s of scans, set from the first 3 scans' stamps"."""
+        if self.size is None:
+            return f"automatic: {self.duration_s:g} s of scans, set from the first {AUTO_PROBE} scans' stamps"
+        auto = ""
+        if self.scan_period_s:
+            bound = {AUTO_MIN: ", at least", AUTO_MAX: ", at most"}.get(self.size, "")
+            bound = f"{bound} {self.size}" if bound and self.size != round(self.duration_s / self.scan_period_s) else ""
+            auto = f" (automatic: {self.duration_s:g} s at {1 / self.scan_period_s:.3g} Hz{bound})"
+        every = f", one every {self.step} scans" if self.step != self.size else ""
+        return f"{self.size} scans{auto}{every}"
+
+    def _set_size(self, stamp: float) -> None:
+        """Automatic size: collect the stamp; at AUTO_PROBE stamps, set size (and step, when 0) from their
+        shortest interval."""
+        self._probe.append(stamp)
+        if len(self._probe) < AUTO_PROBE:
+            return
+        gaps = np.diff(self._probe)
+        self.scan_period_s = float(np.median(gaps[gaps <= DROPPED * gaps.min()]))
+        size = int(np.clip(round(self.duration_s / self.scan_period_s), AUTO_MIN, AUTO_MAX))
+        self.step = self._step or size  # before size: another thread's describe() reads step once size is set
+        self.size = size
+        self._probe.clear()

@@ -415,7 +415,7 @@ def run_detection(out: str | Path, config: Config, scenes: list[str], frames: in
     runs = _replay_split(out, config, split, scenes, frames, free_bags, free_frames, progress, **plan)
     table = score(runs, within)
     table.update(split=split, bags_from=split_description(split, plan.get("groups")),
-                 window_size=config.window.size,
+                 window_size=config.window.setting(),
                  health=asdict(config.health), segmentation=config.segmentation.mode,
                  plan={k: list(v) if isinstance(v, tuple) else v for k, v in plan.items()
                        if k not in ("engine", "workers", "address")})
