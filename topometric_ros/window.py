@@ -158,9 +158,9 @@ class SlidingWindow:
     ``size`` 0: automatic, the scans of ``duration_s`` seconds at the stream's scan rate, set once from the
     first AUTO_PROBE stamps (round(duration_s / period), AUTO_MIN to AUTO_MAX scans; the period: the median of
     their intervals within DROPPED × the shortest, so neither a dropped scan nor stamp jitter moves it much);
-    until then ``size`` is None. ``push`` returns the completed window (a list) when the pushed item is a window's last,
-    else None. An item whose stamp is not newer than the previous one (bag loop, sim time reset, duplicate)
-    restarts the window: the partial window is discarded and counted in ``discarded``.
+    until then ``size`` is None. ``push`` returns the completed window (a list) when the pushed item is a
+    window's last, else None. An item whose stamp is not newer than the previous one (bag loop, sim time reset,
+    duplicate) restarts the window: the partial window is discarded and counted in ``discarded``.
     """
 
     def __init__(self, size: int, step: int = 0, duration_s: float = 1.0):
@@ -227,8 +227,7 @@ class SlidingWindow:
         return f"{self.size} scans{auto}{every}"
 
     def _set_size(self, stamp: float) -> None:
-        """Automatic size: collect the stamp; at AUTO_PROBE stamps, set size (and step, when 0) from their
-        shortest interval."""
+        """Automatic size: collect the stamp; at AUTO_PROBE stamps, set the scan period, size and step (when 0)."""
         self._probe.append(stamp)
         if len(self._probe) < AUTO_PROBE:
             return
