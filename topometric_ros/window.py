@@ -220,8 +220,9 @@ class SlidingWindow:
             return f"automatic: {self.duration_s:g} s of scans, set from the first {AUTO_PROBE} scans' stamps"
         auto = ""
         if self.scan_period_s:
-            bound = {AUTO_MIN: ", at least", AUTO_MAX: ", at most"}.get(self.size, "")
-            bound = f"{bound} {self.size}" if bound and self.size != round(self.duration_s / self.scan_period_s) else ""
+            natural = round(self.duration_s / self.scan_period_s)  # before the clip to AUTO_MIN .. AUTO_MAX
+            bound = (f", at least {AUTO_MIN}" if natural < AUTO_MIN else f", at most {AUTO_MAX}" if natural > AUTO_MAX
+                     else "")
             auto = f" (automatic: {self.duration_s:g} s at {1 / self.scan_period_s:.3g} Hz{bound})"
         every = f", one every {self.step} scans" if self.step != self.size else ""
         return f"{self.size} scans{auto}{every}"
