@@ -88,3 +88,32 @@ def test_an_interrupted_write_leaves_nothing_that_passes_for_whole(tmp_path):
     with written_whole(whole) as tmp:
         np.savez(tmp, a=np.arange(3))
     assert list(tmp_path.glob("cache*")) == [whole] and np.load(whole)["a"].tolist() == [0, 1, 2]
+
+
+def test_a_file_compressed_bag_reads_through_rosbags_with_the_same_rules(tmp_path):
+    """A bag whose files are zstd-compressed whole (storage.py leaves it to rosbags): no topic named gives no
+    message (not every topic), a message that does not deserialise is counted and skipped, and a topic missing
+    from several bags read as one names them all."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    from topometric_ros.storage import ReadLog
+
+    store = bag.typestore()
+    writer = Writer(tmp_path / "z", version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+    with writer:
+        odom = writer.add_connection("/odom", bag.ODOMETRY, typestore=store)
+        for k in range(4):
+            raw = store.serialize_cdr(bag.make_odometry(1.0 + k, np.eye(4)), bag.ODOMETRY)
+            writer.write(odom, int((1.0 + k) * 1e9), bytes(raw[:20]) if k == 2 else raw)  # one cut message
+    assert list(bag.read_messages(tmp_path / "z", [])) == []
+    log = ReadLog()
+    got = list(bag.read_messages(tmp_path / "z", ["/odom"], log))
+    assert [t for _, t, _ in got] == [1_000_000_000, 2_000_000_000, 4_000_000_000] and log.undecodable == 1
+    with bag.BagWriter(tmp_path / "side") as w:
+        w.write("/odom2", 1.0, bag.make_odometry(1.0, np.eye(4)))
+    with pytest.raises(bag.BagError, match="not in .*z, .*side"):
+        list(bag.read_messages([tmp_path / "z", tmp_path / "side"], ["/points"]))
+    merged = list(bag.read_messages([tmp_path / "z", tmp_path / "side"], ["/odom2"], ReadLog()))
+    assert [topic for topic, _, _ in merged] == ["/odom2"]  # the compressed bag has no /odom2: nothing from it

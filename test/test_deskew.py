@@ -67,6 +67,26 @@ def test_the_monitor_waits_for_odometry_past_the_sweep_before_it_deskews():
     assert off.counters["scans_deskewed"] == 0 and off.counters["scans_processed"] == 1
 
 
+def test_per_point_times_are_checked_with_their_points():
+    """add_scan's times go through the scan's checks: an empty scan with an empty time array is counted, not
+    raised; a NaN time on a point that is dropped (non-finite) does not hold the scan up; a NaN time on a kept
+    point leaves the times unused (said in last_note), so the scan is not deskewed by them."""
+    cfg = load_config(overrides={"segmentation.mode": "none", "window.size": 2, "window.pose_wait_s": 0.0})
+    m = Monitor(cfg)
+    assert not m.add_scan(10.0, np.zeros((0, 3)), time=np.zeros(0)) and m.counters["dropped_bad_scan"] == 1
+    pts = np.random.default_rng(3).uniform(-5, 5, (2000, 3)).astype(np.float32)
+    times = np.linspace(0.0, 0.1, 2000)
+    pts[5], times[5] = np.nan, np.nan
+    m.add_pose(10.0, np.eye(4))
+    m.add_pose(10.1, np.eye(4))
+    assert m.add_scan(10.0, pts, time=times)
+    assert m.pending_length == 0 and m.counters["scans_deskewed"] == 1  # its sweep ends at 10.1: ready
+    pts[5], times[7] = 1.0, np.nan
+    m.add_pose(10.3, np.eye(4))
+    assert m.add_scan(10.2, pts, time=times) and "non-finite" in m.last_note
+    assert m.pending_length == 0 and m.counters["scans_processed"] == 2 and m.counters["scans_deskewed"] == 1
+
+
 def test_scans_waiting_for_odometry_that_stopped_are_released_once_it_is_stale():
     """The last scans of a stream wait for odometry past their sweep; when the odometry has stopped for
     health.stale_after_s (receive clock) they are scored with what came (the last motion continued over

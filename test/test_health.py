@@ -85,6 +85,21 @@ def test_alarms_do_not_teach_the_baseline():
     assert h.assess(result(pne=before[0] + 20 * before[1])).level == "ERROR"  # drift never becomes normal
 
 
+def test_a_metric_still_learning_does_not_let_the_other_learn_from_alarms():
+    """CPV undefined in every other window (few co-planar planes) keeps CPV's baseline short while PNE's is in:
+    PNE's alarmed windows still do not teach PNE's baseline, and CPV's calm values still teach CPV's."""
+    h = Health(HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=1))
+    rng = np.random.default_rng(1)
+    for k in range(18):
+        h.assess(result(1.0 + 0.5 * rng.standard_normal(), 0.01 if k % 2 else float("nan")))
+    assert h.baseline("pne") is not None and h.baseline("cpv") is None  # 18 PNE values, 9 CPV of 10
+    before = h.baseline("pne")
+    for _ in range(5):
+        assert h.assess(result(pne=before[0] + 13 * before[1], cpv=0.01)).level == "ERROR"
+    assert h.baseline("pne") == before
+    assert h.baseline("cpv") is not None  # 9 + 5 CPV values: CPV's own learning went on
+
+
 def test_quiet_sites_get_a_floor_on_the_spread():
     """A perfectly constant baseline (MAD 0) must not make every tiny wobble an alarm."""
     h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.2, cpv_min_sigma=0.3, warn_sigma=4.0, warn_persist=1))

@@ -124,6 +124,23 @@ def test_extrinsic_from_tf_static_wins_over_config():
     np.testing.assert_allclose(m.extrinsic[:3, 3], [0, 0, SENSOR_HEIGHT])
 
 
+def test_extrinsic_from_tf_static_between_sibling_frames():
+    """Odometry of an IMU (child frame imu_link) beside the LiDAR, both under base_link (a LIO's usual tree):
+    the extrinsic is the LiDAR's pose in imu_link through base_link, not the config's identity."""
+    types = rosbags_types(bag.typestore())
+    m = Monitor(config(**{"window.extrinsic": [0.0] * 6 + [1.0]}), floor_scan, floor_window)
+    yaw = geometry.make_pose(geometry.rotvec_to_matrix(np.array([0.0, 0.0, np.pi / 2])), [0.2, 0.0, 0.1])
+    m.add_tf_static(bag.make_tf(0.0, yaw, "base_link", "imu_link"))
+    m.add_tf_static(bag.make_tf(0.0, geometry.make_pose(np.eye(3), [0.5, 0.0, SENSOR_HEIGHT]), "base_link", "velodyne"))
+    m.add_odometry(bag.make_odometry(0.0, base_pose(0.0), "map", "imu_link"))
+    pts = floor_points()
+    m.add_cloud(make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, 0.05, "velodyne", types))
+    assert m.extrinsic_source == "tf_static"
+    # the LiDAR 0.3 m ahead of the IMU along base_link's x, which is the IMU's -y (the IMU is turned 90 deg)
+    np.testing.assert_allclose(m.extrinsic[:3, 3], [0.0, -0.3, SENSOR_HEIGHT - 0.1], atol=1e-9)
+    np.testing.assert_allclose(m.extrinsic[:3, :3], geometry.rotvec_to_matrix(np.array([0.0, 0.0, -np.pi / 2])), atol=1e-9)
+
+
 def test_the_last_cloud_says_why_its_points_or_fields_were_not_all_used():
     """last_note (the node's cloud_note): a ring id beyond the named model's beams asks whether sensor.model is
     right; a constant time field says the azimuth gives the times; a cloud that uses everything clears it."""

@@ -124,16 +124,20 @@ def test_a_bad_beam_id_drops_that_point_not_the_scan():
     assert len(scan16.points) == n - 2 and scan16.dropped["bad_beam"] == 2  # a named 16-beam sensor
 
 
+@pytest.mark.parametrize("stamp", [STAMP, 1.0, 1.95])
 @pytest.mark.parametrize("unit, absolute", [("s", False), ("ns", False), ("s", True), ("ns", True), ("us", True)])
-def test_a_time_field_in_any_unit_and_reference_becomes_seconds_after_the_stamp(unit, absolute):
+def test_a_time_field_in_any_unit_and_reference_becomes_seconds_after_the_stamp(unit, absolute, stamp):
+    """Also with a header stamp near 0 (a simulator's clock), where several units land within a sweep or two of
+    the stamp: relative ns must not read as absolute ns (-1 s), absolute s not as relative s (+1.5 s), absolute
+    us not as relative ns (a 0.1 ms sweep)."""
     types = rosbags_types(bag.typestore())
     t = np.linspace(0.0, 0.0999, 500)
-    value = (STAMP if absolute else 0.0) + t
+    value = (stamp if absolute else 0.0) + t
     value = {"s": value, "ns": value * 1e9, "us": value * 1e6}[unit]
     kind = 8 if absolute or unit == "s" else 6  # float64 or uint32
     fields = (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("timestamp", 12, kind))
     arrays = {"x": np.ones(500, np.float32), "y": np.linspace(-1, 1, 500), "z": np.zeros(500), "timestamp": value}
-    msg = make_layout_cloud(arrays, fields, 20, STAMP, "lidar", types)
+    msg = make_layout_cloud(arrays, fields, 20, stamp, "lidar", types)
     scan = read_scan(msg)
     np.testing.assert_allclose(scan.time, t, atol=1e-6)  # float64 ns since the epoch hold 256 ns steps
 

@@ -144,7 +144,7 @@ def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable
         for file in storage.bag_files(path):
             storage.storage_of(file)
     except storage.Unsupported:
-        yield from _rosbags_messages(path, topic_names, strict)
+        yield from _rosbags_messages(path, topic_names, strict, log)
         return
     if topic_names is not None and strict:
         _check_topics(path, set(topic_names), set(topics(path)))
@@ -165,20 +165,23 @@ def _merged(paths: Sequence[str | Path], topic_names: Iterable[str] | None, log:
 
     wanted = None if topic_names is None else set(topic_names)
     if wanted is not None and strict:
-        _check_topics(Path(paths[0]), wanted, set(topics(paths)))
+        _check_topics(", ".join(str(p) for p in paths), wanted, set(topics(paths)))
     streams = [read_messages(p, None if wanted is None else sorted(wanted & set(topics(p))), log, strict=False)
                for p in paths]
     yield from heapq.merge(*streams, key=lambda message: message[1])
 
 
-def _check_topics(path: Path, wanted: set[str], have: set[str]) -> None:
+def _check_topics(path: Path | str, wanted: set[str], have: set[str]) -> None:
     missing = wanted - have
     if missing:
         raise BagError(f"topic(s) {', '.join(sorted(missing))} not in {path} (has: {', '.join(sorted(have))})")
 
 
-def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: bool) -> Iterator[tuple[str, int, Any]]:
-    """read_messages through rosbags' AnyReader (bags storage.py does not read)."""
+def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: bool, log: Any
+                      ) -> Iterator[tuple[str, int, Any]]:
+    """read_messages through rosbags' AnyReader (bags storage.py does not read): no topic named, no message
+    (rosbags reads every topic for an empty connection list); a message that does not deserialise is counted
+    in ``log`` and skipped."""
     with _opened(path) as reader:
         conns = reader.connections
         if topic_names is not None:
@@ -186,8 +189,15 @@ def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: boo
             if strict:
                 _check_topics(path, wanted, {c.topic for c in conns})
             conns = [c for c in conns if c.topic in wanted]
+            if not conns:
+                return
         for conn, t_ns, raw in reader.messages(connections=conns):
-            yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception:  # noqa: BLE001 - as read_messages: a damaged message is counted and skipped
+                log.undecodable += 1
+                continue
+            yield conn.topic, t_ns, msg
 
 
 def odometry_pose(msg: Any) -> tuple[float, np.ndarray]:

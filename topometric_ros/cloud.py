@@ -167,6 +167,9 @@ class CloudScan:
 #: Names a per-point time field goes by (ouster t, velodyne time, hesai/livox timestamp, others).
 TIME_FIELDS = ("t", "time", "timestamp", "time_stamp", "offset_time", "time_offset")
 MAX_SWEEP_S = 1.0  # s, per-point times spanning more than this are not one sweep: not used
+MIN_SWEEP_S = 0.005  # s, a sweep shorter than this is no real sensor's: a unit that gives one is a misreading
+#: (scale to s, reference) of a time field: relative s, absolute s/ns/us (reference: the header stamp), relative ns
+TIME_UNITS = ((1.0, 0.0), (1.0, None), (1e-9, None), (1e-6, None), (1e-9, 0.0))
 
 
 def read_scan(msg: Any, max_beams: int = 0) -> CloudScan:
@@ -276,8 +279,7 @@ def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> 
     if not keep.any():
         return None, ""
     ends = np.array(_kept_range(raw, keep))  # v * scale - ref is monotone in v: its extremes are at the ends
-    unit = next(((scale, ref) for scale, ref in ((1.0, 0.0), (1.0, stamp), (1e-9, stamp), (1e-6, stamp), (1e-9, 0.0))
-                 if np.abs(ends * scale - ref).max() <= 2 * MAX_SWEEP_S), None)  # relative s, absolute s/ns/us, relative ns
+    unit = _time_unit(ends, stamp)
     if unit is None:
         return None, f"time field {name!r} is neither a time relative to the header stamp nor near it; not used"
     t = _kept_times(raw, keep, *unit)
@@ -288,6 +290,20 @@ def _times(fields: Mapping[str, np.ndarray], stamp: float, keep: np.ndarray) -> 
     if span > MAX_SWEEP_S or max(abs(first), abs(last)) > 2 * MAX_SWEEP_S:
         return None, f"time field {name!r} spans {span:.3g} s, not one sweep; not used"
     return t, ""
+
+
+def _time_unit(ends: np.ndarray, stamp: float) -> tuple[float, float] | None:
+    """(scale, reference) that maps a time field's (lowest, highest) raw value to seconds after ``stamp`` (s),
+    or None. Of the units that land within 2 sweeps of the stamp, the one whose times lie closest to it among
+    those giving a sweep of MIN_SWEEP_S or more: a stamp near 0 (simulated time) lets several units land."""
+    fits = []
+    for scale, ref in TIME_UNITS:
+        ref = stamp if ref is None else ref
+        t = ends * scale - ref
+        far = float(np.abs(t).max())
+        if far <= 2 * MAX_SWEEP_S:
+            fits.append((t[1] - t[0] < MIN_SWEEP_S, far, scale, ref))
+    return min(fits)[2:] if fits else None
 
 
 @numba.njit(cache=True, nogil=True)

@@ -198,11 +198,10 @@ class Health:
             level = _worse(level, "WARN")
             alarms.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
         calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
-        if learning or (level == "OK" and calm):  # only clearly normal windows teach the baseline (no creep)
-            for metric in METRICS:
-                value = float(getattr(result, metric))
-                if np.isfinite(value):
-                    self._history[metric].append(to_scale(metric, value))
+        for metric in METRICS:  # only clearly normal windows teach a learnt baseline (no creep)
+            value = float(getattr(result, metric))
+            if np.isfinite(value) and (self.baseline(metric) is None or (level == "OK" and calm)):
+                self._history[metric].append(to_scale(metric, value))
         if learning:
             n = min(len(h) for h in self._history.values())
             notes.append(f"learning baseline ({n}/{c.baseline_windows} windows)")

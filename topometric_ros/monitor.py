@@ -337,7 +337,7 @@ class Monitor:
         self.layout = scan.layout or self.layout
         extra = {"labels": scan.labels, "ring": scan.beam, "intensity": scan.intensity, "time": scan.time}
         return self._accept(scan.stamp, scan.points, extra, received, finite=True, columns=scan.columns,
-                            sweep=self._sweep(scan.time, scan.layout), layout=scan.layout)
+                            layout=scan.layout)
 
     def _sweep(self, time: np.ndarray | None, layout: str) -> tuple | None:
         """(t_min, t_max, period_s, stamp_at) of the sweep to deskew, or None (deskew.sweep_to_deskew)."""
@@ -368,8 +368,10 @@ class Monitor:
         self._resolve_extrinsic()
 
     def _resolve_extrinsic(self) -> None:
+        """The sensor's pose in the odometry's child frame from /tf_static, whichever of the two hangs below the
+        other or both below a common frame (odometry of an IMU beside the LiDAR under base_link)."""
         if self._odom_child and self.sensor_frame:
-            pose = self.static_tf.lookup(self._odom_child, self.sensor_frame)
+            pose = self.static_tf.between(self._odom_child, self.sensor_frame)
             if pose is not None:
                 self.extrinsic, self.extrinsic_source = pose, "tf_static"
 
@@ -403,11 +405,10 @@ class Monitor:
         Non-finite points are removed (counted); an empty, malformed, duplicate scan is dropped (counted).
         Returns True when the scan was accepted (it may still wait for odometry)."""
         extra = {"labels": labels, "ring": ring, "intensity": intensity, "time": time}
-        return self._accept(stamp, points, extra, received, finite=False,
-                            sweep=self._sweep(None if time is None else np.asarray(time), ""))
+        return self._accept(stamp, points, extra, received, finite=False)
 
     def _accept(self, stamp, points, extra: dict, received, finite: bool, columns: int = 0,
-                sweep: tuple | None = None, layout: str = "") -> bool:
+                layout: str = "") -> bool:
         self.count("scans_in")
         clock = _clock(stamp, received)
         if clock is not None:  # a scan arrived, even if it fails below (failing, not STALE)
@@ -419,7 +420,7 @@ class Monitor:
         if fault:  # a cloud on another clock would get another moment's pose: drift that is not there
             self._clock_fault("dropped_clock", fault, received)
             return False
-        scan.columns, scan.sweep, scan.layout = columns, sweep, layout
+        scan.columns, scan.sweep, scan.layout = columns, self._sweep(scan.time, layout), layout
         if self._last_scan_stamp is not None and scan.stamp <= self._last_scan_stamp:
             if scan.stamp == self._last_scan_stamp:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
@@ -464,6 +465,11 @@ class Monitor:
         if len(pts) == 0:
             self._error("dropped_bad_scan", f"empty scan at {stamp:.3f}", received)
             return None
+        if extra["time"] is not None:
+            t = np.asarray(extra["time"])
+            extra["time"] = t if t.dtype.kind == "f" else t.astype(np.float64)
+            if not np.isfinite(extra["time"]).all():  # as cloud.read_scan: the field is not used
+                extra["time"], self.last_note = None, "per-point times hold non-finite values; not used"
         return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
                      time.perf_counter(), extra["time"], received=received)
 
