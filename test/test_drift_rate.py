@@ -245,17 +245,15 @@ def test_a_non_repetitive_livox_reads_both_drift_rates_in_the_default_mode(tmp_p
 
 def test_the_rate_gate_widens_with_distance_so_a_drift_past_cpvs_gate_is_read():
     """Two scans 1 s apart drifting 0.4 m/s along x: the walls facing x move 0.4 m, past CPV's ε (0.3 m),
-    so with CPV's groups (rate_gate_per_m 0) no plane shows the x drift (read 0). The default gate, 0.02 m per
-    m the window travelled (× 10 m: ε + 0.2 m), joins them and reads 0.4 m/s; CPV's own groups stay."""
+    so with CPV's groups no plane shows the x drift (read 0). metrics.rate_gate_per_m × the distance the
+    window travelled (0.02 × 10 m: ε + 0.2 m) joins them and reads 0.4 m/s; CPV's own groups stay."""
     from topometric_ros.pipeline import WindowPlanes, plane_metrics
 
     times = np.array([0.0, 1.0])
     wp = WindowPlanes(*window(v_m_s=(0.4, 0, 0), planes=ROOM[:6], times=times))
-    off_cfg = Config()
-    off_cfg.metrics.rate_gate_per_m = 0.0
-    off = plane_metrics(wp, times, off_cfg, distance=10.0)
+    off = plane_metrics(wp, times, Config(), distance=10.0)
     cfg = Config()
-    assert cfg.metrics.rate_gate_per_m == 0.02  # the default
+    cfg.metrics.rate_gate_per_m = 0.02
     on = plane_metrics(wp, times, cfg, distance=10.0)
     assert off.trans_rate < 1e-6 and on.trans_rate == pytest.approx(0.4, rel=1e-6)
     assert (on.n_groups, on.cpv) == (off.n_groups, off.cpv)
@@ -264,8 +262,8 @@ def test_the_rate_gate_widens_with_distance_so_a_drift_past_cpvs_gate_is_read():
 
 def test_score_window_widens_the_rate_gate_by_the_distance_its_poses_travelled():
     """The same drift through score_window: two scans 1 s apart, the sensor driving 10 m along y, the SLAM
-    pose drifting 0.4 m along x. The window's own poses give the distance (10 m), so the default
-    rate_gate_per_m (0.02) reads the 0.4 m/s that CPV's gate alone (0) cannot."""
+    pose drifting 0.4 m along x. The window's own poses give the distance (10 m), so rate_gate_per_m 0.02
+    reads the 0.4 m/s that CPV's gate alone cannot."""
     from topometric_ros.pipeline import ProcessedScan, score_window
     from topometric_ros.planes import Plane
 
@@ -281,9 +279,9 @@ def test_score_window_widens_the_rate_gate_by_the_distance_its_poses_travelled()
             planes.append(Plane(k % 3, normal, -float(normal @ mean), c, mean, scatter, np.zeros((0, 3), np.float32)))
         scans.append(ProcessedScan(t, geometry.make_pose(np.eye(3), [0.4 * t, 0.0, 0.0]) @ truth, planes))
     cfg = Config()
-    cfg.metrics.rate_gate_per_m = 0.0
     assert score_window(scans, cfg).trans_rate < 1e-6
-    assert score_window(scans, Config()).trans_rate == pytest.approx(0.4, rel=1e-6)  # the default, 0.02
+    cfg.metrics.rate_gate_per_m = 0.02
+    assert score_window(scans, cfg).trans_rate == pytest.approx(0.4, rel=1e-6)
 
 
 def test_standard_error_is_zero_for_an_exact_trend_and_matches_the_spread_under_per_scan_pose_noise():

@@ -106,7 +106,7 @@ class MetricsConfig:
     pne_floor_deg: float = 0.1  # deg, floor on the PNE tangent spread (a perfect cluster stays finite)
     cpv_angle_deg: float = 10.0  # deg, largest angle between normals of co-planar planes
     cpv_epsilon: float = 0.3  # m, largest |D2 - D1| of co-planar planes (paper Eq. 10)
-    rate_gate_per_m: float = 0.02  # m per m the window travelled, added to cpv_epsilon for the drift-rate fit's own co-plane groups (0 = it uses CPV's; 0.02 chosen on the calibration split)
+    rate_gate_per_m: float = 0.0  # m per m the window travelled, added to cpv_epsilon for the drift-rate fit's own co-plane groups (0 = it uses CPV's)
     radius: float = 1.0  # m, neighbourhood radius of MME/MPV/MOM
     min_neighbours: int = 5  # a point counts when it has more than this many neighbours
     exact_baselines: bool = False  # exact MME/MPV (every point) instead of the fast approximation
