@@ -317,3 +317,27 @@ def test_audit_on_a_two_node_cluster_through_address(fleet, tmp_path, two_node_c
     rows = json.loads((out / "fleet.json").read_text())["bags"]
     nodes = {row["worker"].split(" node ")[1] for row in rows}
     assert len(nodes) == 2, rows  # both nodes ran bags (1 CPU each, 4 tasks)
+
+
+def test_the_cache_key_holds_the_code_and_a_failed_bag_keeps_no_earlier_reports(fleet, tmp_path, monkeypatch):
+    """Another version of the package's sources is another key (results of other code are not reused); a bag
+    given as "." is named after its folder; a task that fails leaves none of an earlier audit's reports."""
+    from topometric_ros import audit as audit_mod
+
+    src = tmp_path / "src"
+    shutil.copytree(Path(audit_mod.__file__).parent, src, ignore=shutil.ignore_patterns("__pycache__", "*.pt"))
+    before = audit_mod.code_digest(src)
+    assert before == audit_mod.code_digest(src) and before == audit_mod.code_digest()
+    (src / "health.py").write_text((src / "health.py").read_text() + "\n# one more line\n")
+    assert audit_mod.code_digest(src) != before
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    tasks, _ = audit_mod.plan([fleet / "night_0"], tmp_path / "out", config)
+    assert tasks[0].key["code"] == before
+    monkeypatch.chdir(fleet / "night_1")
+    assert audit_mod.bag_names([Path("."), fleet / "night_0"]) == ["night_1", "night_0"]
+    folder = tmp_path / "out" / "bags" / "night_0"
+    folder.mkdir(parents=True)
+    (folder / "windows.json").write_text("{}")  # an earlier audit's
+    row = audit_mod._store(tmp_path / "out", tasks[0], None, "worker died")
+    assert row["status"] == "failed" and not (folder / "windows.json").exists()
+    assert json.loads((folder / MANIFEST).read_text())["key"] is None

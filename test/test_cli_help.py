@@ -34,7 +34,7 @@ def test_every_option_of_every_subcommand_shows_its_default(monkeypatch):
     assert len(sub.choices) >= 9 and checked > 50
     demo = " ".join(sub.choices["demo"].format_help().split())
     assert "--frames FRAMES scans in the demo bag (5 per second) (default: 150)" in demo
-    assert "(default: labels)" in demo  # the demo's segmentation
+    assert "(default: labels, unless --config or --set segmentation.mode says otherwise)" in demo  # the demo's
 
 
 def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
@@ -73,7 +73,9 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb"),
                         (["train", "x", "--share", "Mid-360"], "argument --share: expected MODEL=FRACTION"),
                         (["train", "x", "--share", "Mid360=0.3"], "got 'Mid360=0.3'"),
-                        (["train", "x", "--share", "Mid-360=2"], "argument --share: expected a number within [0, 1]")):
+                        (["train", "x", "--share", "Mid-360=2"], "argument --share: expected a number within [0, 1]"),
+                        (["simulate", "--clock-jump", "10,1", "--out", "x"],
+                         "argument --clock-jump: expected AT,OFFSET,DURATION in s (three numbers, DURATION > 0)")):
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv], capture_output=True, text=True)
         assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)
 
@@ -141,3 +143,31 @@ def test_benchmarks_help_lists_every_benchmark_and_refuses_an_unknown_one():
     assert "The whole per-scan pipeline per sensor" in res.stdout and "(not in the default set)" in res.stdout
     res = subprocess.run([sys.executable, "-m", "benchmarks", "nope"], capture_output=True, text=True, cwd=root)
     assert res.returncode == 2 and "no benchmark named nope" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_subcommands_own_segmentation_default_yields_to_config_and_set(tmp_path):
+    """demo and alarms default to the bags' own labels, but a --config or --set segmentation.mode wins over that
+    default (only --segmentation itself wins over them); replay has no default of its own: the config's."""
+    from topometric_ros.cli import _monitor_config, build_parser
+
+    parser = build_parser()
+    net = tmp_path / "net.yaml"
+    net.write_text("segmentation:\n  mode: network\n")
+    for argv, mode in ((["demo"], "labels"), (["demo", "--set", "segmentation.mode=network"], "network"),
+                       (["alarms", "--config", str(net)], "network"),
+                       (["alarms", "--config", str(net), "--segmentation", "none"], "none"),
+                       (["replay", "bag", "--out", "o"], "network"), (["replay", "bag", "--out", "o", "--config", str(net),
+                                                                   "--segmentation", "labels"], "labels")):
+        assert _monitor_config(parser.parse_args(argv)).segmentation.mode == mode, argv
+
+
+def test_plane_quality_takes_the_detector_of_its_config_unless_named(tmp_path):
+    from topometric_ros.cli import _planes_config, build_parser
+
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text("planes:\n  detector: open3d\n")
+    parser = build_parser()
+    for argv, detector in ((["plane-quality", "--config", str(cfg)], "open3d"),
+                           (["plane-quality", "--config", str(cfg), "--detector", "ring"], "ring"),
+                           (["plane-quality"], "ring")):
+        assert _planes_config(parser.parse_args(argv)).detector == detector, argv

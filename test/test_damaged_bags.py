@@ -246,6 +246,52 @@ def test_every_damaged_variant_keeps_every_intact_scan(bags, tmp_path):
             assert counts["recovered"] > 0 and counts["chunks_damaged"] + counts["rows_skipped"] > 0, (name, counts)
 
 
+def test_a_flipped_byte_in_an_uncompressed_chunk_is_noted_by_its_crc(tmp_path):
+    """An uncompressed MCAP whose writer stored chunk CRCs (the mcap library's, as rosbag2's MCAP plugin does;
+    rosbags writes 0: nothing to check) with one payload byte flipped: every message is still read (the records
+    are intact), and the chunk's CRC says the chunk is damaged, as for a compressed chunk."""
+    from mcap.writer import CompressionType, Writer
+
+    from topometric_ros import storage
+
+    file = tmp_path / "flipped.mcap"
+    with open(file, "wb") as f:
+        writer = Writer(f, compression=CompressionType.NONE, chunk_size=200)
+        writer.start("ros2", "test")
+        schema = writer.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
+        channel = writer.register_channel("/words", "cdr", schema)
+        for k in range(10):
+            writer.add_message(channel, log_time=k, publish_time=k, data=b"HELLOWORLD%d" % k)
+        writer.finish()
+    data = bytearray(file.read_bytes())
+    at = data.find(b"HELLOWORLD4")
+    data[at] ^= 0xFF
+    file.write_bytes(bytes(data))
+    log = storage.ReadLog()
+    got = [raw for _, _, _, raw in storage.read_raw(file, ["/words"], log)]
+    assert len(got) == 10 and bytes(got[4]).endswith(b"ELLOWORLD4") and bytes(got[4]) != b"HELLOWORLD4"
+    assert log.chunks_damaged == 1 and log.chunks_lost == 0
+    assert any("CRC mismatch" in line for line in log.lines()), log.lines()
+
+
+def test_a_truncated_database_of_64_kib_pages_is_noted(tmp_path):
+    """SQLite stores a 65536-byte page size as 1 in its header: a database of such pages cut in half is still
+    seen as truncated."""
+    from topometric_ros.storage import _truncation
+
+    file = tmp_path / "big_pages.db3"
+    con = sqlite3.connect(file)
+    con.execute("PRAGMA page_size=65536")
+    con.execute("CREATE TABLE t (b BLOB)")
+    con.executemany("INSERT INTO t VALUES (?)", [(bytes(50_000),) for _ in range(20)])
+    con.commit()
+    con.close()
+    assert int.from_bytes(file.read_bytes()[16:18], "big") == 1
+    pages = file.stat().st_size // 65536
+    truncate(file, file.stat().st_size // 2)
+    assert _truncation(file) == f", file truncated: {pages // 2} of {pages} pages"
+
+
 def test_an_undamaged_bag_reads_as_rosbags_reads_it(bags):
     """The tolerant reader gives exactly rosbags' messages, order and bytes on an intact bag of each storage."""
     from rosbags.highlevel import AnyReader

@@ -98,7 +98,7 @@ def find_bags(args: Iterable[str]) -> list[Path]:
 def bag_names(bags: list[Path]) -> list[str]:
     """A folder name per bag under OUT/bags: the bag's name, with a short hash of its path where two bags of
     the set share a name."""
-    base = [p.stem if p.is_file() else p.name for p in bags]
+    base = [p.stem if p.is_file() else p.resolve().name for p in bags]  # "." names the folder it is
     return [b if base.count(b) == 1 else f"{b}-{hashlib.sha256(str(p.resolve()).encode()).hexdigest()[:8]}"
             for b, p in zip(base, bags)]
 
@@ -314,6 +314,15 @@ class AuditResult:
     summary: dict
 
 
+def code_digest(root: Path = Path(__file__).parent) -> str:
+    """sha256 over the package's Python sources (relative name and bytes, in name order): results of other code
+    are not reused."""
+    h = hashlib.sha256()
+    for file in sorted(root.rglob("*.py")):
+        h.update(str(file.relative_to(root)).encode() + b"\0" + file.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def network_digest(config: Config) -> str | None:
     """weights_digest of the network files a replay with ``config`` loads (None without the network)."""
     return weights_digest(_read(weights_files(config)))
@@ -322,7 +331,7 @@ def network_digest(config: Config) -> str | None:
 def plan(bags: list[Path], out: Path, config: Config, options: dict | None = None,
          force: bool = False) -> tuple[list[BagTask], list[dict]]:
     """(tasks to run, rows of cached bags): a bag whose manifest holds the same key is cached."""
-    common = {"config": config_digest(config), "weights": network_digest(config),
+    common = {"config": config_digest(config), "weights": network_digest(config), "code": code_digest(),
               "options": dict(sorted((options or {}).items())), "format": AUDIT_FORMAT}
     tasks, cached = [], []
     for path, name in zip(bags, bag_names(bags)):
@@ -348,6 +357,8 @@ def _store(out: Path, task: BagTask, result: dict | None, error: str | None) -> 
     folder = out / "bags" / task.name
     if error is not None:  # the task raised or its worker died: no key, the next audit runs it again
         row = {"bag": task.name, "status": "failed", "reason": error, "path": task.path, "cached": False}
+        for name in REPORT_FILES:  # an earlier audit's reports are not this one's
+            (folder / name).unlink(missing_ok=True)
         write_json(folder / MANIFEST, {"key": None, "row": row})
         return row
     for name in REPORT_FILES:

@@ -90,7 +90,17 @@ def _monitor_config(args: argparse.Namespace):
         over["window.size"] = args.window_size
     if getattr(args, "segmentation", None):
         over["segmentation.mode"] = args.segmentation
+    elif (getattr(args, "segmentation_fallback", None) and "segmentation.mode" not in over
+          and not getattr(args, "config", None)):  # the subcommand's own default yields to --config and --set
+        over["segmentation.mode"] = args.segmentation_fallback
     return load_config(getattr(args, "config", None), over)
+
+
+def _planes_config(args: argparse.Namespace):
+    """plane-quality's planes section: the config's (or the defaults'), its detector replaced by --detector."""
+    from .config import load_config
+
+    return load_config(args.config, {"planes.detector": args.detector} if args.detector else {}).planes
 
 
 def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
@@ -115,11 +125,13 @@ def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | No
                                                    f"({defaults.window.duration_s:g} s) at the bag's own scan rate "
                                                    f"(paper: 5, 10, 15; default: the config's window.size, "
                                                    f"{defaults.window.size})")
-    p.add_argument("--segmentation", choices=("network", "labels", "none"), default=segmentation_default,
+    p.add_argument("--segmentation", choices=("network", "labels", "none"), default=None,
                    help="where labels come from: network (the shipped segmentation), labels (the cloud's own label "
                         "field: simulated bags), none (every point static)"
-                        + ("" if segmentation_default else f" (default: the config's segmentation.mode, "
-                                                           f"{defaults.segmentation.mode})"))
+                        + (f" (default: {segmentation_default}, unless --config or --set segmentation.mode says "
+                           f"otherwise)" if segmentation_default else
+                           f" (default: the config's segmentation.mode, {defaults.segmentation.mode})"))
+    p.set_defaults(segmentation_fallback=segmentation_default)
 
 
 def _add_engine_args(p: argparse.ArgumentParser) -> None:
@@ -256,6 +268,18 @@ def _floats(text: str) -> tuple:
     return tuple(float(x) for x in text.split(",") if x.strip())
 
 
+def _clock_jump(text: str) -> tuple[float, float, float]:
+    """AT,OFFSET,DURATION (s): three finite numbers, DURATION > 0 (argparse type)."""
+    try:
+        values = _floats(text)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values) or values[2] <= 0:
+        raise argparse.ArgumentTypeError(f"expected AT,OFFSET,DURATION in s (three numbers, DURATION > 0), "
+                                         f"got {text!r}")
+    return values
+
+
 def _positive_floats(text: str) -> tuple:
     """A comma list of numbers > 0 (argparse type)."""
     values = _floats(text)
@@ -373,10 +397,9 @@ def _seeds(text: str) -> list[int]:
 def cmd_plane_quality(args: argparse.Namespace) -> int:
     import csv
 
-    from .config import load_config
     from .experiments.plane_quality import evaluate_detector, plot_plane_quality
 
-    cfg = load_config(args.config, {"planes.detector": args.detector}).planes
+    cfg = _planes_config(args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cols = ("recall", "worst_recall", "truth", "recalled", "surface_recall", "surface_truth", "median_purity",
@@ -565,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
                    help="the SLAM's everyday error under the drift: none, or LiDAR-odometry-like (drift rates per "
                         "metre that wander, a share of each turn, jitter, corridor slide)")
-    s.add_argument("--clock-jump", type=_floats, default=(), metavar="AT,OFFSET,DURATION",
+    s.add_argument("--clock-jump", type=_clock_jump, default=(), metavar="AT,OFFSET,DURATION",
                    help="cloud stamps jump by OFFSET s from AT s after the start for DURATION s (a clock fault)")
     s.add_argument("--no-distortion", action="store_true",
                    help="instantaneous sweeps (without it: every firing at its own time along the trajectory)")
@@ -758,7 +781,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"],
                    help="scenes (comma list)")
     q.add_argument("--frames", type=_positive, default=20, help="scans per scene")
-    q.add_argument("--detector", default="ring", choices=("ring", "open3d"), help="plane detector")
+    q.add_argument("--detector", default=None, choices=("ring", "open3d"),
+                   help="plane detector (default: the config's planes.detector, ring)")
     q.add_argument("--seed", type=_seeds, default=[0],
                    help="trajectory/noise seeds: 0 | 0,3,5 | 0-6; recall is pooled over them")
     q.add_argument("--config", default=None, help="YAML config (planes section is used)")

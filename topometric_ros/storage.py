@@ -364,7 +364,10 @@ class _Mcap:
         or in the decompressed bytes; buffer None when nothing can be decompressed."""
         cut = chunk.end > self.size
         if not chunk.compression:
-            return self.buf, chunk.start, min(chunk.end, self.size), "cut by the end of the file" if cut else ""
+            problem = "cut by the end of the file" if cut else ""
+            if not cut and chunk.crc and zlib.crc32(self.buf[chunk.start:chunk.end]) != chunk.crc:
+                problem = "CRC mismatch; read record by record"
+            return self.buf, chunk.start, min(chunk.end, self.size), problem
         raw = bytes(self.buf[chunk.start:min(chunk.end, self.size)])
         try:
             data = _decompress(chunk.compression, raw, chunk.uncompressed)
@@ -541,7 +544,8 @@ def _truncation(file: Path) -> str:
         head = f.read(100)
     if len(head) < 100:
         return ", file truncated inside its header"
-    page = int.from_bytes(head[16:18], "big") or 65536
+    page = int.from_bytes(head[16:18], "big")
+    page = 65536 if page in (0, 1) else page  # SQLite writes 64 KiB pages as 1
     pages = int.from_bytes(head[28:32], "big")
     have = file.stat().st_size // page
     return f", file truncated: {have} of {pages} pages" if have < pages else ""
