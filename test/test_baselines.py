@@ -192,3 +192,14 @@ def test_bad_input_is_a_clear_error():
         mme([np.zeros((5, 3))], np.eye(4)[None].repeat(2, axis=0))
     with pytest.raises(ValueError, match="radius"):
         mpv([np.zeros((5, 3))], np.eye(4)[None], radius=0.0)
+
+
+def test_an_empty_map_gives_the_same_baselines_on_both_paths(tmp_path):
+    """A window whose scans kept no points: the fast approximation gives what the exact path gives (0, 0),
+    not a crash; a PLY cut inside its header is a ValueError, not an endless read."""
+    empty, poses = [np.zeros((0, 3))] * 2, np.stack([np.eye(4)] * 2)
+    assert mme_mpv(empty, poses, 1.0, 5, False) == mme_mpv(empty, poses, 1.0, 5, True) == (0.0, 0.0)
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n")
+    with pytest.raises(ValueError, match="without end_header"):
+        ref.read_ply(cut)

@@ -94,7 +94,9 @@ def voxel_moments(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarr
 
     Returns (centroids (V, 3), counts (V,), scatter (V, 6) Σ (x − c)(x − c)ᵀ, voxel index of each point (N,)).
     """
-    pts = np.asarray(points, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:  # a map whose scans kept no points: no voxel
+        return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.int64)
     # boundaries at (k + 0.382) · size: off the round coordinates (planes at z = −1.0 m, ...), so a
     # rounding-level change of the points does not move them across
     cell = np.floor(pts / size - _GRID_PHASE).astype(np.int64)

@@ -26,7 +26,10 @@ def read_ply(path: Path) -> np.ndarray:
     """Binary little-endian PLY with float64 x, y, z only -> (N, 3)."""
     with open(path, "rb") as f:
         n = 0
-        while (line := f.readline().decode().strip()) != "end_header":
+        while (raw := f.readline()).strip() != b"end_header":
+            if not raw:
+                raise ValueError(f"{path}: PLY header without end_header")
+            line = raw.decode().strip()
             if line.startswith("element vertex"):
                 n = int(line.split()[-1])
         return np.frombuffer(f.read(24 * n), dtype="<f8").reshape(n, 3).copy()
