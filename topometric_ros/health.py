@@ -159,6 +159,7 @@ class Health:
                 level = _worse(level, "WARN")
                 alarms.append(f"pose noise: {meaning} {shown} {unit}, its standard error {se / warn:.2g} × the limit "
                               f"{warn:.3g} (the poses scatter from scan to scan)")
+        bases: dict[str, tuple[float, float] | None] = {}  # of the metrics with a finite value
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
@@ -166,7 +167,7 @@ class Health:
                 alarms.append(f"{metric.upper()} undefined (no co-planar planes)")
                 continue
             meaning = _meaning(metric, result, limits)
-            base = self.baseline(metric)
+            base = bases[metric] = self.baseline(metric)
             lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
             warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
             z[metric] = sigma_z.get(metric, float("nan"))
@@ -200,7 +201,7 @@ class Health:
         calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
         for metric in METRICS:  # only clearly normal windows teach a learnt baseline (no creep)
             value = float(getattr(result, metric))
-            if np.isfinite(value) and (self.baseline(metric) is None or (level == "OK" and calm)):
+            if np.isfinite(value) and (bases[metric] is None or (level == "OK" and calm)):
                 self._history[metric].append(to_scale(metric, value))
         if learning:
             n = min(len(h) for h in self._history.values())

@@ -363,20 +363,20 @@ class _Mcap:
         """(buffer, start, end, problem): the records at buffer[start:end], in the mapped file (uncompressed)
         or in the decompressed bytes; buffer None when nothing can be decompressed."""
         cut = chunk.end > self.size
-        if not chunk.compression:
-            problem = "cut by the end of the file" if cut else ""
-            if not cut and chunk.crc and zlib.crc32(self.buf[chunk.start:chunk.end]) != chunk.crc:
-                problem = "CRC mismatch; read record by record"
-            return self.buf, chunk.start, min(chunk.end, self.size), problem
-        raw = bytes(self.buf[chunk.start:min(chunk.end, self.size)])
-        try:
-            data = _decompress(chunk.compression, raw, chunk.uncompressed)
-        except Exception as e:  # noqa: BLE001 - every codec raises its own type
-            return None, 0, 0, f"cannot decompress ({type(e).__name__}: {e})"
-        problem = "cut by the end of the file" if cut or len(data) < chunk.uncompressed else ""
-        if not problem and chunk.crc and zlib.crc32(data) != chunk.crc:
-            problem = "CRC mismatch; read record by record"
-        return data, 0, len(data), problem
+        if chunk.compression:
+            raw = bytes(self.buf[chunk.start:min(chunk.end, self.size)])
+            try:
+                data = _decompress(chunk.compression, raw, chunk.uncompressed)
+            except Exception as e:  # noqa: BLE001 - every codec raises its own type
+                return None, 0, 0, f"cannot decompress ({type(e).__name__}: {e})"
+            start, end, cut = 0, len(data), cut or len(data) < chunk.uncompressed
+        else:
+            data, start, end = self.buf, chunk.start, min(chunk.end, self.size)
+        if cut:
+            return data, start, end, "cut by the end of the file"
+        if chunk.crc and zlib.crc32(memoryview(data)[start:end]) != chunk.crc:  # a view: the mapped file uncopied
+            return data, start, end, "CRC mismatch; read record by record"
+        return data, start, end, ""
 
     def _records(self, buf: Any, pos: int, end: int, t0: int, t1: int) -> Iterator[tuple[int, int, Any, int, int]]:
         """Messages of the records in buf[pos:end] (a chunk's), learning schemas and channels; past a damaged
