@@ -36,6 +36,31 @@ def test_local_and_ray_give_the_same_results_and_name_each_failure(short_bag, tm
         list(run_tasks(bag_digest, items, engine="dask"))
 
 
+def test_local_tasks_run_on_one_thread_and_leave_the_callers_threads_as_they_were():
+    """Each in-process task gets one torch and one Open3D thread, as a Ray worker does (the same numbers);
+    the caller's own counts are back between results and afterwards."""
+    import torch
+
+    from topometric_ros.engine import set_threads, threads
+
+    before = threads()
+    try:
+        set_threads((2, 2))
+        seen = []
+        for _, result, error in run_tasks(_thread_counts, [0, 1], engine="local", progress=False):
+            seen.append((result, threads()))
+        assert seen == [((1, 1), (2, 2))] * 2 and error is None
+        assert torch.get_num_threads() == 2
+    finally:
+        set_threads(before)
+
+
+def _thread_counts(_item):
+    from topometric_ros.engine import threads
+
+    return threads()
+
+
 def test_weights_shipped_to_ray_workers_by_digest_give_the_replay_of_the_shipped_network(short_bag, tmp_path):
     config = load_config(overrides={"segmentation.mode": "network"})
     weights = {name: path.read_bytes() for name, path in weights_files(config).items()}

@@ -110,6 +110,25 @@ def test_a_grid_is_never_narrower_than_the_network_can_read():
     assert scan_grid(_beams(np.linspace(-15, 15, 16), per_beam=1800)).width == 1800
 
 
+def test_an_organised_clouds_width_wins_over_the_named_sensors_firings():
+    """An Ouster in 2048x10 mode named as its model (1024 firings in sensors.py): the cloud's 2048 columns are
+    the grid's, so no two firings of a beam share a cell; an unorganised cloud takes the model's."""
+    model = sensor("OS1-64")
+    pts = _beams(model.elevation_deg, per_beam=2048)
+    beam = np.repeat(np.arange(model.beams), 2048)
+    grid = scan_grid(pts, beam, columns=2048, model=model)
+    assert grid.width == 2048 and len(np.unique(grid.row * grid.width + grid.col)) == len(pts)
+    assert scan_grid(pts, beam, model=model).width == model.columns == 1024
+
+
+def test_a_dual_return_scans_second_returns_do_not_count_as_firings():
+    """Unorganised, no sensor named, every firing twice (strongest and last return, same azimuth, other
+    range): the width is the firings per revolution, not the MAX_COLUMNS cap."""
+    single = _beams(np.linspace(-15, 15, 16), per_beam=1800)
+    dual = np.concatenate([single, single * 1.5])
+    assert scan_grid(single).width == scan_grid(dual).width == 1800
+
+
 def test_a_bad_beam_id_drops_that_point_not_the_scan():
     types = rosbags_types(bag.typestore())
     lay = LAYOUTS["velodyne"]

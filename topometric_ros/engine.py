@@ -28,18 +28,42 @@ _RAY: dict = {}  # what this process started or joined: {"key": (address or None
 
 def single_thread() -> None:
     """One thread for torch and Open3D in this process (a task's share of the machine is one core)."""
+    set_threads((1, 1))
+
+
+def threads() -> tuple[int | None, int | None]:
+    """(torch threads, Open3D max threads) of this process; None for a library that is not installed."""
+    return _torch_threads(), _open3d_threads()
+
+
+def set_threads(counts: tuple[int | None, int | None]) -> None:
+    """Set torch's and Open3D's thread counts (as threads() gives them; None leaves that library alone)."""
+    torch_n, open3d_n = counts
+    if torch_n is not None:
+        _torch_threads(torch_n)
+    if open3d_n is not None:
+        _open3d_threads(open3d_n)
+
+
+def _torch_threads(n: int | None = None) -> int | None:
     try:
         import torch
-
-        torch.set_num_threads(1)
     except ImportError:
-        pass
+        return None
+    if n is not None:
+        torch.set_num_threads(n)
+    return torch.get_num_threads()
+
+
+def _open3d_threads(n: int | None = None) -> int | None:
     try:
         import open3d as o3d
 
-        o3d.utility.set_max_threads(1)
+        if n is not None:
+            o3d.utility.set_max_threads(n)
+        return o3d.utility.get_max_threads()
     except (ImportError, AttributeError):
-        pass
+        return None
 
 
 def _call(fn: Callable, item: Any, shared: dict) -> Any:
@@ -84,17 +108,28 @@ def run_tasks(fn: Callable, items: Iterable, engine: str = "ray", workers: int =
     bar = tqdm(total=len(items), desc=desc, unit="task", disable=not progress or not items)
     try:
         if engine == "local" or not items:
-            for item in items:
-                try:
-                    result, error = _call(fn, item, shared), None
-                except Exception as e:  # noqa: BLE001 - one item's failure is reported, the others run
-                    result, error = None, describe(e)
-                bar.update()
-                yield item, result, error
+            yield from _run_local(fn, items, shared, bar)
             return
         yield from _run_ray(fn, items, shared, bar)
     finally:
         bar.close()
+
+
+def _run_local(fn: Callable, items: list, shared: dict, bar) -> Iterator[tuple[Any, Any, str | None]]:
+    """run_tasks in this process, one thread per task as on Ray (the same numbers); the caller's thread
+    counts are back once the tasks are done (or the caller stops asking for them)."""
+    before = threads()
+    try:
+        for item in items:
+            try:
+                result, error = _call(fn, item, shared), None
+            except Exception as e:  # noqa: BLE001 - one item's failure is reported, the others run
+                result, error = None, describe(e)
+            bar.update()
+            set_threads(before)  # the caller's counts while it handles this result
+            yield item, result, error
+    finally:
+        set_threads(before)
 
 
 def ensure_ray(workers: int = 2, address: str | None = None) -> None:

@@ -16,8 +16,8 @@ Rows, 0 = the lowest beam, from the first of:
    grid has finer columns (image_columns: about one pixel per point, as a spinning sensor's image has), placed
    by each point's azimuth as fired (``azimuth``, kept for these grids only).
 Columns: ``width`` azimuth cells of 2π / width, column 0 centred on the sensor's +x axis, counter-clockwise; width
-is the sensor's firings per revolution (named sensor, or the organised cloud's width, or estimated from
-the points per row), rounded up to a multiple of GRID_ALIGN so network and tiles fit, and at least MIN_COLUMNS.
+is the sensor's firings per revolution (the organised cloud's width, else a named sensor's, else estimated
+from the azimuth steps within rows), rounded up to a multiple of GRID_ALIGN so network and tiles fit, and at least MIN_COLUMNS.
 """
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ GRID_ALIGN = 8  # width multiple (the network folds 4 columns and halves them on
 MIN_COLUMNS = 64  # no LiDAR fires fewer times per revolution; the network's circular padding needs this many
 MAX_BEAMS = 256  # beam ids at or above this are bad (no LiDAR has more beams)
 MAX_COLUMNS = 4096  # firings per revolution an unnamed sensor's grid may have (2x the finest model; garbage beyond)
+MIN_AZIMUTH_STEP = np.pi / MAX_COLUMNS  # rad, azimuth steps within a row finer than this are one firing's returns
 NON_REPETITIVE_ROWS = 32  # elevation bins of a non-repetitive scan
 IMAGE_COLUMN_STEP = 64  # a non-repetitive grid's image width is a multiple of this (few image shapes per sensor)
 BEAM_GAP_DEG = 0.06  # deg, an empty elevation gap this wide between far points separates two beams
@@ -134,11 +135,19 @@ def scan_grid(points: np.ndarray, beam: np.ndarray | None = None, columns: int =
                 azimuth = az  # the network image's finer columns (image_columns)
             else:
                 row, height, source = _nearest(el, centres), len(centres), "elevation clusters"
-    width = aligned(model.columns if model is not None
-                    else min(columns or _estimate_width(pts, row, height), MAX_COLUMNS))
+    width = aligned(min(_width(columns, model, non_repetitive) or _estimate_width(pts, row, height), MAX_COLUMNS))
     if row_el is None:
         row_el = _row_elevations(row[::SAMPLE], el[::SAMPLE], height)
     return ScanGrid(row.astype(np.int32), azimuth_cells(az, width), int(height), width, row_el, source, azimuth)
+
+
+def _width(columns: int, model, non_repetitive: bool) -> int:
+    """Azimuth cells when known without looking at the points (0 = estimate them): a non-repetitive grid's
+    (the named model's, else square cells), else the organised cloud's width (the driver's real firings per
+    revolution, whatever mode a named sensor runs in), else the named model's."""
+    if non_repetitive:
+        return model.columns if model is not None else columns
+    return columns or (model.columns if model is not None else 0)
 
 
 def square_cells(fov_deg: tuple[float, float], rows: int) -> int:
@@ -259,7 +268,9 @@ def _estimate_width(points: np.ndarray, row: np.ndarray, height: int) -> int:
         p = points[row == r]
         if len(p) > 8:
             steps.append(np.diff(np.sort(np.arctan2(p[:, 1], p[:, 0]))))
-    step = float(np.median(np.concatenate(steps))) if steps else 0.0
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    steps = steps[steps >= MIN_AZIMUTH_STEP]  # finer: a second return of the same firing (dual-return scans)
+    step = float(np.median(steps)) if len(steps) else 0.0
     return int(round(2 * np.pi / step)) if step > 0 else int(max(counts.max(), 1))
 
 
