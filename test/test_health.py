@@ -232,6 +232,21 @@ def test_persistence_ignores_one_odd_window_but_warns_on_the_second():
     assert limit.assess(result(pne=med + 2.0)).level == "ERROR"  # absolute limits act at once
 
 
+def test_each_metric_counts_its_own_persistence():
+    """One odd PNE window then one odd CPV window: neither metric was odd twice, so both stay 'watch' (OK);
+    a second CPV window then alarms on CPV alone."""
+    cfg = HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=2, persist_windows=2,
+                       pne_min_sigma=0.5)
+    h = learned(cfg)
+    (pne_med, pne_sigma), (cpv_med, cpv_sigma) = h.baseline("pne"), h.baseline("cpv")
+    cpv_at = lambda k: from_scale("cpv", cpv_med + k * cpv_sigma)  # noqa: E731
+    assert h.assess(result(pne=pne_med + 6 * pne_sigma)).level == "OK"
+    odd_cpv = result(pne=pne_med, cpv=cpv_at(9))
+    assert h.assess(odd_cpv).level == "OK" and "watch: CPV 9.0σ above baseline in 1 of 2" in odd_cpv.message
+    again = result(pne=pne_med, cpv=cpv_at(9))
+    assert h.assess(again).level == "ERROR" and "CPV 9.0σ" in again.message and "PNE" not in again.message
+
+
 def test_with_persistence_every_level_comes_one_window_later_for_a_steady_rise():
     """A steady rise (drift lasts): 2-of-2 persistence gives, from the second window on, the levels the
     single-window rule gave one window earlier."""

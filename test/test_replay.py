@@ -390,7 +390,7 @@ def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tm
     code, out, summary = replay_cli(tmp_path / "two", tmp_path / "out2", capsys, "--segmentation", "labels")
     assert code == 1 and summary["windows"] == 0 and summary["window_scans"] is None, out
     assert ("no window: 2 scans processed, fewer than a window (automatic: 1 s of scans, set from the first 3 "
-            "scans' stamps); replay with --window-size 2") in out
+            "scans' stamps (up to 6 when uneven)); replay with --window-size 2") in out
     rewrite(bag_path, tmp_path / "three", lambda t, m: [(t, m)], scans=3)
     code, out, summary = replay_cli(tmp_path / "three", tmp_path / "out", capsys, "--segmentation", "labels")
     assert code == 1 and summary["scans_processed"] == 3 and summary["windows"] == 0, out

@@ -116,8 +116,10 @@ def test_an_automatic_window_holds_duration_s_of_scans_at_the_streams_rate(rate_
 
 def test_an_automatic_window_reads_the_rate_through_a_dropped_scan_jitter_and_a_restart():
     w = SlidingWindow(0, 2)
-    stamps = [0.0, 0.2, 0.3]  # the scan at 0.1 s never arrived: the interval of 0.2 s is not taken for a period
-    assert [w.push(s, s) for s in stamps] == [None] * 3
+    stamps = [0.0, 0.2, 0.3, 0.4, 0.5]  # the scan at 0.1 s never arrived: 0.2 s is not taken for a period
+    assert [w.push(s, s) for s in stamps[:3]] == [None] * 3 and w.size is None  # uneven: it waits for more
+    assert [w.push(s, s) for s in stamps[3:]] == [None] * 2 and w.size is None
+    w.push(0.6, 0.6)
     assert w.size == 10 and w.step == 2 and w.describe() == "10 scans (automatic: 1 s at 10 Hz), one every 2 scans"
     w = SlidingWindow(0)
     for s in (0.0, 0.092, 0.2):  # stamps 8 ms early and on time: the median period, not the shortest (11 scans)
@@ -131,3 +133,20 @@ def test_an_automatic_window_reads_the_rate_through_a_dropped_scan_jitter_and_a_
     w.push("d", 1.25)
     w.push("e", 1.5)
     assert w.size == 4 and w.push("f", 1.75) == ["c", "d", "e", "f"]
+
+
+@pytest.mark.parametrize("jitter", [0.03, -0.03])
+def test_stamp_jitter_in_the_first_scans_is_not_read_as_a_dropped_scan(jitter):
+    """10 Hz with 30 ms of jitter on the second stamp: three stamps look like 14 Hz with a dropped scan, so the
+    window waits for six and reads 10 Hz; the scans it held all go into windows (size 10 > 6 held)."""
+    w = SlidingWindow(0)
+    stamps = [0.0, 0.1 + jitter, 0.2, 0.3, 0.41, 0.5]
+    for k, s in enumerate(stamps):
+        assert w.size is None
+        w.push(k, s)
+    assert w.size == 10 and w.scan_period_s == pytest.approx(0.1)
+    windows = [w.push(k, 0.1 * k) for k in range(6, 10)]
+    assert windows[-1] == list(range(10))
+    small = SlidingWindow(0, duration_s=0.3)  # 3 scans a window: it starts at the newest of the six held
+    assert [small.push(k, s) for k, s in enumerate(stamps)][-1] == [3, 4, 5] and small.size == 3
+    assert [small.push(k, 0.1 * k) for k in range(6, 9)] == [None, None, [6, 7, 8]]

@@ -19,10 +19,10 @@ class WindowConfig:
     """Sliding window of scans and the pose lookup (window.py, monitor.py)."""
 
     size: int = 0  # scans per window, 2 or more; 0 = automatic: the scans of duration_s at the stream's own scan rate (10 at 10 Hz; the alarms are calibrated on 1 s windows); the paper: 5, 10, 15
-    duration_s: float = 1.0  # s of scans an automatic window (size 0) holds (1 s: 10 scans at 10 Hz), its size set once from the first 3 scans' stamps
+    duration_s: float = 1.0  # s of scans an automatic window (size 0) holds (1 s: 10 scans at 10 Hz), its size set once from the first 3 scans' stamps (up to 6 when uneven)
     step: int = 0  # scans between window starts; 0 = size (the paper's choice)
     pose_wait_s: float = 0.1  # a scan waits until odometry newer than its stamp + this arrives
-    max_pose_gap_s: float = 0.5  # a scan whose stamp is farther than this from any odometry is dropped
+    max_pose_gap_s: float = 0.5  # a scan with an odometry pose before or after it farther than this (s) is dropped (never interpolated across an odometry gap)
     queue_size: int = 8  # scans waiting for the worker; when full the oldest is dropped
     pipelined: bool = True  # live: per-scan work in two worker threads (segmentation | planes + window), overlapping on 2 cores
     voxel_size: float = 0.0  # m, voxel downsample per scan before segmentation (0 = off)

@@ -7,8 +7,8 @@ episode nor a slow ramp teaches the baseline).
 Both are compared on a log scale: PNE is already one (an entropy, ½ ln det Σ + c), CPV (a variance, m²)
 through ln CPV, so the spread floors (``pne_min_sigma``, ``cpv_min_sigma``) are unit-free and site-free.
 The robust z = (x − median) / max(1.4826·MAD, floor) raises WARN at ``warn_sigma`` and ERROR at
-``error_sigma``, once ``warn_persist`` of the last ``persist_windows`` windows (this one included) had a
-z at or above warn_sigma: drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
+``error_sigma``, once ``warn_persist`` of the last ``persist_windows`` windows (this one included) had that
+metric's z at or above warn_sigma (each metric counts its own windows): drift lasts, a single odd window (a view of few planes, seen at 9σ on drift-free
 calibration bags) does not, so persistence cuts false alarms at a lower threshold. Absolute limits
 (config, in metric units, 0 = off) apply at once, from the first window.
 The drift rates of the co-plane groups (metrics/drift_rate.py: deg/s and m/s from one joint fit to the
@@ -105,7 +105,7 @@ class Health:
         self.config = config or HealthConfig()
         self._history = {m: deque(maxlen=max(self.config.baseline_windows, self.config.baseline_history))
                          for m in METRICS}
-        self._high = self._recent(self.config.warn_persist)
+        self._high = {m: self._recent(self.config.warn_persist) for m in METRICS}  # each metric its own count
         self._rate_high = {r: self._recent(self.config.rate_persist) for r in RATES}
         self.rates = RateLimits(self.config)
         self.last: Assessment | None = None
@@ -135,8 +135,8 @@ class Health:
         level, alarms, notes, z, warn_at, error_at = "OK", [], [], {}, {}, {}
         learning = False
         sigma_z = self._sigma_z(result)
-        self._high.append(any(v >= c.warn_sigma for v in sigma_z.values()))
-        persistent = sum(self._high) >= c.warn_persist
+        for metric, high in self._high.items():
+            high.append(sigma_z.get(metric, float("nan")) >= c.warn_sigma)
         limits = self.rates.limits(result)
         for rate, (meaning, unit) in RATES.items():
             value, se, shown = self.rates.judged(result, rate)
@@ -171,6 +171,8 @@ class Health:
             lim_warn, lim_err = getattr(c, f"{metric}_warn"), getattr(c, f"{metric}_error")
             warn_at[metric], error_at[metric] = _limits(metric, base, c, lim_warn, lim_err)
             z[metric] = sigma_z.get(metric, float("nan"))
+            high = self._high[metric]
+            persistent = sum(high) >= c.warn_persist
             learning |= base is None
             if lim_err != 0 and value >= lim_err:
                 level = _worse(level, "ERROR")
@@ -184,10 +186,10 @@ class Health:
             elif base and z[metric] >= c.warn_sigma and persistent:
                 level = _worse(level, "WARN")
                 alarms.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
-                              (f" ({sum(self._high)} of the last {len(self._high)} windows)" if c.warn_persist > 1 else ""))
+                              (f" ({sum(high)} of the last {len(high)} windows)" if c.warn_persist > 1 else ""))
             elif base and z[metric] >= c.warn_sigma:
                 notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
-                             f"{sum(self._high)} of {c.warn_persist} windows needed")
+                             f"{sum(high)} of {c.warn_persist} windows needed")
         self.rates.learn(result)
         agreement = float(getattr(result, "agreement", float("nan")))
         warn_at["agreement"] = c.agreement_warn if c.agreement_warn > 0 else float("nan")

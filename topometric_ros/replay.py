@@ -302,7 +302,7 @@ def _why_no_window(counters: dict, window: SlidingWindow, last_error: str) -> st
     """Why scans were processed but no window came out: too few for the window (window.size, or an automatic
     window's), or windows lost (counted)."""
     n = counters["scans_processed"]
-    if window.size is None and n >= AUTO_PROBE:
+    if window.size is None and n >= AUTO_PROBE and window.resets:
         return (f"no window from {n} scans: the stream restarted {window.resets} times (stamps not newer than the "
                 f"last) before {AUTO_PROBE} scans in a row could set the automatic window's size")
     if window.size is None or n < window.size:

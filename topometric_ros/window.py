@@ -145,10 +145,10 @@ class PoseBuffer:
         return b @ geometry.make_pose(rot, u[:, None] * step[:3, 3])
 
 
-#: Stamps that give an automatic window size the stream's scan period, and the fewest and most scans such a
-#: window holds (config.RANGES: 200).
-AUTO_PROBE, AUTO_MIN, AUTO_MAX = 3, 3, 200
-#: Intervals longer than this × the shortest are taken for dropped scans when the period is read.
+#: Stamps that give an automatic window size the stream's scan period (AUTO_PROBE when their intervals are
+#: even, up to AUTO_PROBE_MAX when not), and the fewest and most scans such a window holds (config.RANGES: 200).
+AUTO_PROBE, AUTO_PROBE_MAX, AUTO_MIN, AUTO_MAX = 3, 6, 3, 200
+#: Intervals longer than this × the median are taken for dropped scans when the period is read.
 DROPPED = 1.5
 
 
@@ -157,8 +157,10 @@ class SlidingWindow:
 
     ``size`` 0: automatic, the scans of ``duration_s`` seconds at the stream's scan rate, set once from the
     first AUTO_PROBE stamps (round(duration_s / period), AUTO_MIN to AUTO_MAX scans; the period: the median of
-    their intervals within DROPPED × the shortest, so neither a dropped scan nor stamp jitter moves it much);
-    until then ``size`` is None. ``push`` returns the completed window (a list) when the pushed item is a
+    their intervals within DROPPED × their median, so neither a dropped scan nor stamp jitter moves it much).
+    Three stamps cannot tell a dropped scan from jitter, so uneven ones (one interval over DROPPED × another)
+    wait for more, up to AUTO_PROBE_MAX; a window smaller than the scans held then starts at the newest ones.
+    Until then ``size`` is None. ``push`` returns the completed window (a list) when the pushed item is a
     window's last, else None. An item whose stamp is not newer than the previous one (bag loop, sim time reset,
     duplicate) restarts the window: the partial window is discarded and counted in ``discarded``.
     """
@@ -215,9 +217,10 @@ class SlidingWindow:
 
     def describe(self) -> str:
         """The window in words: "10 scans (automatic: 1 s at 10 Hz)", "5 scans", or, automatic and not set yet,
-        "automatic: 1 s of scans, set from the first 3 scans' stamps"."""
+        "automatic: 1 s of scans, set from the first 3 scans' stamps (up to 6 when uneven)"."""
         if self.size is None:
-            return f"automatic: {self.duration_s:g} s of scans, set from the first {AUTO_PROBE} scans' stamps"
+            return (f"automatic: {self.duration_s:g} s of scans, set from the first {AUTO_PROBE} scans' stamps "
+                    f"(up to {AUTO_PROBE_MAX} when uneven)")
         auto = ""
         if self.scan_period_s:
             natural = round(self.duration_s / self.scan_period_s)  # before the clip to AUTO_MIN .. AUTO_MAX
@@ -228,13 +231,16 @@ class SlidingWindow:
         return f"{self.size} scans{auto}{every}"
 
     def _set_size(self, stamp: float) -> None:
-        """Automatic size: collect the stamp; at AUTO_PROBE stamps, set the scan period, size and step (when 0)."""
+        """Automatic size: collect the stamp; at AUTO_PROBE even stamps (or AUTO_PROBE_MAX uneven ones), set the
+        scan period, size and step (when 0)."""
         self._probe.append(stamp)
-        if len(self._probe) < AUTO_PROBE:
-            return
         gaps = np.diff(self._probe)
-        self.scan_period_s = float(np.median(gaps[gaps <= DROPPED * gaps.min()]))
+        if len(self._probe) < AUTO_PROBE or (len(self._probe) < AUTO_PROBE_MAX and gaps.max() > DROPPED * gaps.min()):
+            return  # too few stamps, or uneven ones: a dropped scan or stamp jitter, which more stamps tell apart
+        self.scan_period_s = float(np.median(gaps[gaps <= DROPPED * np.median(gaps)]))
         size = int(np.clip(round(self.duration_s / self.scan_period_s), AUTO_MIN, AUTO_MAX))
+        while len(self._items) > size:  # the probe held more scans than the window: it starts at the newest
+            self._items.popleft()
         self.step = self._step or size  # before size: another thread's describe() reads step once size is set
         self.size = size
         self._probe.clear()
