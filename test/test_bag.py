@@ -111,9 +111,25 @@ def test_a_file_compressed_bag_reads_through_rosbags_with_the_same_rules(tmp_pat
     log = ReadLog()
     got = list(bag.read_messages(tmp_path / "z", ["/odom"], log))
     assert [t for _, t, _ in got] == [1_000_000_000, 2_000_000_000, 4_000_000_000] and log.undecodable == 1
+    assert log.messages == 4  # read, the cut one among them (as storage.py counts)
     with bag.BagWriter(tmp_path / "side") as w:
         w.write("/odom2", 1.0, bag.make_odometry(1.0, np.eye(4)))
     with pytest.raises(bag.BagError, match="not in .*z, .*side"):
         list(bag.read_messages([tmp_path / "z", tmp_path / "side"], ["/points"]))
     merged = list(bag.read_messages([tmp_path / "z", tmp_path / "side"], ["/odom2"], ReadLog()))
     assert [topic for topic, _, _ in merged] == ["/odom2"]  # the compressed bag has no /odom2: nothing from it
+
+
+def test_a_default_topic_is_taken_only_when_it_has_the_type_and_others_are_named():
+    """/odom that is no Odometry is not the estimate: the bag's only Odometry topic is (ground truth aside); an
+    Odometry /odom is, and a note names the other Odometry topics; a topic the user named is never swapped."""
+    pose = "geometry_msgs/msg/PoseStamped"
+    topics = {"/odom": (pose, 5), "/slam/odometry": (bag.ODOMETRY, 5), "/odom_gt": (bag.ODOMETRY, 5)}
+    assert bag.pick_topic(topics, bag.ODOMETRY, "", "/odom", exclude=["/odom_gt"]) == (
+        "/slam/odometry", f"/odom is a {pose}: using its only {bag.ODOMETRY} topic /slam/odometry")
+    topics["/odom"] = (bag.ODOMETRY, 5)
+    assert bag.pick_topic(topics, bag.ODOMETRY, "", "/odom", exclude=["/odom_gt"]) == (
+        "/odom", f"using /odom; the bag has other {bag.ODOMETRY} topics too: /slam/odometry (name one to use it)")
+    assert bag.pick_topic(topics, bag.ODOMETRY, "/nowhere", "/odom") == ("/nowhere", "")
+    assert bag.pick_topic({"/odom": (bag.ODOMETRY, 1), "/odom_gt": (bag.ODOMETRY, 1)}, bag.ODOMETRY, "", "/odom",
+                          exclude=["/odom_gt"]) == ("/odom", "")

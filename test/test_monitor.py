@@ -141,6 +141,28 @@ def test_extrinsic_from_tf_static_between_sibling_frames():
     np.testing.assert_allclose(m.extrinsic[:3, :3], geometry.rotvec_to_matrix(np.array([0.0, 0.0, -np.pi / 2])), atol=1e-9)
 
 
+def test_an_extrinsic_that_changes_after_scans_were_posed_is_named():
+    """A /tf_static that arrives after scans took the config's extrinsic (a recorder started before
+    robot_state_publisher): the monitor switches and says after how many scans; given first, nothing to say."""
+    types = rosbags_types(bag.typestore())
+    tf = bag.make_tf(0.0, geometry.make_pose(np.eye(3), [0, 0, SENSOR_HEIGHT]), "base_link", "velodyne")
+    for late in (False, True):
+        m = Monitor(config(**{"window.extrinsic": [0.0] * 6 + [1.0]}), floor_scan, floor_window)
+        if not late:
+            m.add_tf_static(tf)
+        pts = floor_points()
+        for k in range(4):
+            m.add_odometry(bag.make_odometry(0.2 * k, base_pose(0.2 * k), "map", "base_link"))
+            m.add_cloud(make_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, 0.2 * k, "velodyne", types))
+        m.add_odometry(bag.make_odometry(0.8, base_pose(0.8), "map", "base_link"))
+        if late:
+            m.add_tf_static(tf)
+        m.flush()
+        assert m.extrinsic_source == "tf_static" and m.counters["scans_processed"] == 4
+        assert m.extrinsic_note == ("extrinsic changed after 4 scans (config -> /tf_static): a window spanning "
+                                    "the change mixes the two" if late else "")
+
+
 def test_the_last_cloud_says_why_its_points_or_fields_were_not_all_used():
     """last_note (the node's cloud_note): a ring id beyond the named model's beams asks whether sensor.model is
     right; a constant time field says the azimuth gives the times; a cloud that uses everything clears it."""

@@ -277,6 +277,66 @@ def replay_cli(bag_path, out, capsys, *extra):
     return code, capsys.readouterr().out, json.loads((out / "windows.json").read_text())["summary"]
 
 
+def test_a_sidecar_odometry_bag_on_another_receive_clock_still_pairs_every_scan(office_bag, tmp_path):
+    """The recording's receive times are its system clock (1000 s after the stamps), the sidecar odometry bag
+    was written at the stamps: read beside it, every scan finds its poses (merged by header stamp; by receive
+    time all odometry came first and a 1 s pose buffer had forgotten it), the same windows as the bag alone."""
+    from topometric_ros import bag
+    from topometric_ros.cloud import stamp_seconds
+
+    bag_path, _ = office_bag
+    recording, sidecar = tmp_path / "recording", tmp_path / "sidecar"
+    with bag.BagWriter(recording) as rec, bag.BagWriter(sidecar) as side:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            if topic == "/odom":
+                side.write("/odom", stamp_seconds(msg.header), msg)
+            else:
+                rec.write(topic, t_ns * 1e-9 + 1000.0, msg)
+    config = load_config(overrides={"segmentation.mode": "labels", "window.size": 5, "window.pose_horizon_s": 1.0})
+    alone = replay(bag_path, tmp_path / "alone", config, ReplayOptions(progress=False, plot=False)).summary
+    both = replay(recording, tmp_path / "both", config, ReplayOptions(beside=(sidecar,), progress=False,
+                                                                      plot=False)).summary
+    assert alone["counters"]["scans_processed"] == 30 and alone["windows"] == 6
+    assert both["counters"]["scans_processed"] == 30 and both["windows"] == 6
+    assert both["counters"]["dropped_scans"] == 0
+
+
+def test_a_late_tf_static_and_bad_ground_truth_lose_nothing_and_say_so(office_bag, tmp_path):
+    """/tf_static recorded after every scan: read first, every window as with it in front (no note); ground
+    truth with a NaN position and one with a zero quaternion: left out, counted in a note, RPE from the rest."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+    moved = tmp_path / "late_tf"
+    statics, bad, last = [], 0, 0.0
+    with bag.BagWriter(moved) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            last = t_ns * 1e-9
+            if topic == "/tf_static":
+                statics.append(msg)
+                continue
+            if topic == "/odom_gt" and bad < 2 and last > 2.0:
+                msg = copy.deepcopy(msg)
+                if bad == 0:
+                    msg.pose.pose.position.x = float("nan")
+                else:
+                    q = msg.pose.pose.orientation
+                    q.x = q.y = q.z = q.w = 0.0
+                bad += 1
+            w.write(topic, last, msg)
+        for msg in statics:
+            w.write("/tf_static", last + 1.0, msg)
+    config = load_config(overrides={"segmentation.mode": "labels", "window.size": 5})
+    front = replay(bag_path, tmp_path / "front", config, ReplayOptions(progress=False, plot=False))
+    late = replay(moved, tmp_path / "late", config, ReplayOptions(progress=False, plot=False))
+    assert statics and bad == 2 and late.summary["extrinsic_source"] == "tf_static"
+    assert [w["pne"] for w in late.windows] == [w["pne"] for w in front.windows] and len(late.windows) == 6
+    assert not any("extrinsic changed" in n for n in late.summary["notes"])
+    assert "2 ground-truth messages of /odom_gt left out: no finite rigid transform (RPE uses the others)" in \
+        late.summary["notes"]
+    assert all(np.isfinite(w["rpe"]) for w in late.windows)
+
+
 def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):
     """Zero scans processed: exit 1, the reason, the bag's topics with types and counts, and the mode that ran."""
     bag_path, _ = office_bag

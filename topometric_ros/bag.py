@@ -88,13 +88,19 @@ def check_bag(path: str | Path) -> None:
 def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = "", default: str = "",
                exclude: Iterable[str] = ()) -> tuple[str, str]:
     """(topic, note): ``given`` whenever one is given (a topic the user named is never swapped for another: the
-    caller reports it missing); else ``default`` when the bag has it; else the bag's only topic of ``msgtype``
-    (not in ``exclude``), with a note saying so; else ``default`` (the caller reports it missing)."""
-    if given or default in topics:
-        return given or default, ""
+    caller reports it missing); else ``default`` when the bag has it as a ``msgtype`` (a note names the other
+    topics of that type); else the bag's only topic of ``msgtype`` (not in ``exclude``), with a note saying so;
+    else ``default`` (the caller reports it missing)."""
+    if given:
+        return given, ""
     of_type = [t for t, (kind, _) in sorted(topics.items()) if kind == msgtype and t not in set(exclude)]
+    if default in of_type:
+        others = [t for t in of_type if t != default]
+        return default, (f"using {default}; the bag has other {msgtype} topics too: {', '.join(others)} (name one "
+                         f"to use it)" if others else "")
     if len(of_type) == 1:
-        return of_type[0], f"no {default or 'topic'} in the bag: using its only {msgtype} topic {of_type[0]}"
+        what = f"{default} is a {topics[default][0]}" if default in topics else f"no {default or 'topic'} in the bag"
+        return of_type[0], f"{what}: using its only {msgtype} topic {of_type[0]}"
     return default, ""
 
 
@@ -126,7 +132,7 @@ def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable
                   strict: bool = True) -> Iterator[tuple[str, int, Any]]:
     """Yield (topic, receive time ns, deserialised message) in time order (per storage file), one at a time;
     of several bags read as one (a list of paths, e.g. a sidecar odometry bag beside the recording), merged in
-    receive-time order.
+    header-stamp order (each bag's receive times may be another clock).
 
     ``topic_names`` limits the topics; a named topic missing from the bag raises BagError (``strict``) or is
     left out. A damaged bag gives every message it still holds; ``log`` (a storage.ReadLog) says what was
@@ -160,7 +166,9 @@ def read_messages(path: str | Path | Sequence[str | Path], topic_names: Iterable
 
 def _merged(paths: Sequence[str | Path], topic_names: Iterable[str] | None, log: Any, strict: bool
             ) -> Iterator[tuple[str, int, Any]]:
-    """read_messages of several bags merged by receive time; ``strict`` checks the topics of all of them."""
+    """read_messages of several bags merged by the messages' header stamps (message_stamp_ns), the clock the
+    Monitor pairs scans and poses on: each bag's receive times may be another clock (a recording's system
+    time, a sidecar written at its stamps); ``strict`` checks the topics of all of them."""
     import heapq
 
     wanted = None if topic_names is None else set(topic_names)
@@ -168,7 +176,17 @@ def _merged(paths: Sequence[str | Path], topic_names: Iterable[str] | None, log:
         _check_topics(", ".join(str(p) for p in paths), wanted, set(topics(paths)))
     streams = [read_messages(p, None if wanted is None else sorted(wanted & set(topics(p))), log, strict=False)
                for p in paths]
-    yield from heapq.merge(*streams, key=lambda message: message[1])
+    yield from heapq.merge(*streams, key=message_stamp_ns)
+
+
+def message_stamp_ns(message: tuple[str, int, Any]) -> int:
+    """The header stamp (ns) of a (topic, receive time ns, message) from read_messages; a tf2_msgs/TFMessage's
+    earliest transform stamp; the receive time for a message with neither."""
+    _, t_ns, msg = message
+    headers = [msg.header] if hasattr(msg, "header") else [tf.header for tf in getattr(msg, "transforms", ())]
+    if not headers:
+        return t_ns
+    return min(int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec) for h in headers)
 
 
 def _check_topics(path: Path | str, wanted: set[str], have: set[str]) -> None:
@@ -192,6 +210,7 @@ def _rosbags_messages(path: Path, topic_names: Iterable[str] | None, strict: boo
             if not conns:
                 return
         for conn, t_ns, raw in reader.messages(connections=conns):
+            log.message()
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception:  # noqa: BLE001 - as read_messages: a damaged message is counted and skipped

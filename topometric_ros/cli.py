@@ -105,9 +105,9 @@ def _planes_config(args: argparse.Namespace):
 
 def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
     """The topics of a bag replay (``whose``: "the bag's" or "each bag's") and --quiet."""
-    p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": /points, else {whose} only one; "
+    p.add_argument("--points-topic", default="", help=f"PointCloud2 topic (\"\": /points when it is one, else {whose} only one; "
                                                       "a topic named here is never swapped for another)")
-    p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": /odom, "
+    p.add_argument("--odom-topic", default="", help=f"nav_msgs/Odometry topic of the SLAM estimate (\"\": /odom when it is one, "
                                                     f"else {whose} only one besides --gt-topic)")
     p.add_argument("--gt-topic", default="/odom_gt", help="ground-truth odometry for RPE, when the bag has it "
                                                           "(\"\": none)")

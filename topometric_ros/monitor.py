@@ -135,7 +135,8 @@ def _clock(stamp: Any, received: float | None) -> float | None:
     return value if np.isfinite(value) else None
 
 
-def _valid_pose(pose: np.ndarray) -> bool:
+def valid_pose(pose: np.ndarray) -> bool:
+    """A 4×4 finite rigid transform (orthonormal rotation, det > 0, within 1e-6)."""
     pose = np.asarray(pose, np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         return False
@@ -233,6 +234,8 @@ class Monitor:
         self.clock_events: deque = deque(maxlen=1000)  # every clock fault, for the reports
         self.extrinsic = extrinsic_from_list(w.extrinsic)
         self.extrinsic_source = "config"
+        self.extrinsic_note = ""  # the extrinsic changed after scans had taken the previous one (a late /tf_static)
+        self._posed = 0  # scans given a pose (odometry × extrinsic) so far
         self.static_tf = StaticTransforms()
         self.results: deque = deque(maxlen=keep_results)
         self.last_error = ""
@@ -372,14 +375,18 @@ class Monitor:
         other or both below a common frame (odometry of an IMU beside the LiDAR under base_link)."""
         if self._odom_child and self.sensor_frame:
             pose = self.static_tf.between(self._odom_child, self.sensor_frame)
-            if pose is not None:
-                self.extrinsic, self.extrinsic_source = pose, "tf_static"
+            if pose is None:
+                return
+            if self._posed and not np.allclose(pose, self.extrinsic, atol=1e-9):
+                self.extrinsic_note = (f"extrinsic changed after {self._posed} scans ({self.extrinsic_source} -> "
+                                       f"/tf_static): a window spanning the change mixes the two")
+            self.extrinsic, self.extrinsic_source = pose, "tf_static"
 
     # ---------------------------------------------------------------- inputs: arrays
     def add_pose(self, stamp: float, pose: np.ndarray, received: float | None = None) -> bool:
         """Odometry pose (4×4, odometry child frame -> map) at ``stamp`` s."""
         self.count("poses_in")
-        if not np.isfinite(stamp) or not _valid_pose(pose):
+        if not np.isfinite(stamp) or not valid_pose(pose):
             self._error("bad_poses", f"pose at {stamp} is not a finite rigid transform")
             return False
         fault = self.clock.odometry(float(stamp), received)
@@ -504,6 +511,7 @@ class Monitor:
                 self._error("dropped_no_pose", f"no odometry within {w.max_pose_gap_s} s of scan {scan.stamp:.3f}",
                             scan.received)
                 continue
+            self._posed += 1
             frame = Frame(scan.points, pose @ self.extrinsic, scan.stamp, scan.labels, scan.ring, scan.intensity,
                           scan.time, scan.columns, self._motion(scan), scan.layout)
             self._submit(frame, scan.arrived, scan.received)

@@ -266,7 +266,10 @@ class MonitorNode(Node):
         """Where the extrinsic comes from, why the last cloud's field was not used ("" none), and the window's
         size in scans ("" while an automatic size is not set)."""
         size = self.monitor.window.size
-        return {"extrinsic": self.monitor.extrinsic_source, "cloud_note": self.monitor.last_note,
+        extrinsic = self.monitor.extrinsic_source
+        if self.monitor.extrinsic_note:
+            extrinsic = f"{extrinsic} ({self.monitor.extrinsic_note})"
+        return {"extrinsic": extrinsic, "cloud_note": self.monitor.last_note,
                 "window_scans": "" if size is None else str(size)}
 
     def _latency_task(self, stat):

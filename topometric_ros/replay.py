@@ -29,7 +29,7 @@ from . import bag, geometry, storage
 from .cloud import bad_beam_note
 from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
-from .monitor import Monitor
+from .monitor import Monitor, valid_pose
 from .reports import csv_value, write_csv, write_json
 from .window import AUTO_PROBE, SlidingWindow
 
@@ -176,6 +176,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     feed = _Feed(monitor, rec, opt, speed)
     log, wall0 = storage.ReadLog(), time.perf_counter()
     wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
+    _static_transforms_first(monitor, source, opt.tf_static_topic, topics)
     messages = (bag.read_messages(source, sorted(wanted & set(topics)), log) if opt.beside
                 else read_bag(bag_path, wanted, log))
     try:
@@ -197,6 +198,11 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     notes += [f"{n} cloud{'s' * (n > 1)}: {note}" for note, n in monitor.cloud_notes.items()]
     if c["bad_beam_points"]:
         notes.append(bad_beam_note(c["bad_beam_points"], monitor.model))
+    if feed.bad_gt:
+        notes.append(f"{feed.bad_gt} ground-truth message{'s' * (feed.bad_gt > 1)} of {opt.gt_topic} left out: "
+                     f"no finite rigid transform (RPE uses the others)")
+    if monitor.extrinsic_note:
+        notes.append(monitor.extrinsic_note)
     if c["scans_processed"] and not records:
         notes.append(_why_no_window(c, monitor.window, monitor.last_error))
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
@@ -220,6 +226,7 @@ class _Feed:
         self.gt_stamps: list[float] = []
         self.gt_poses: list[np.ndarray] = []
         self.gt_frame = ""  # the ground truth's child frame (its poses are of that frame)
+        self.bad_gt = 0  # ground-truth messages left out: no finite rigid transform
         self.n_scans, self.first, self.last = 0, None, None
         self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
         self._stale = False
@@ -279,6 +286,19 @@ class _Feed:
         if len(monitor.clock_events) > faults:
             self.rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
 
+    def _ground_truth(self, msg: Any) -> None:
+        """Keep a ground-truth pose for RPE; one that is no finite rigid transform is counted and left out."""
+        try:
+            s, pose = bag.odometry_pose(msg)
+        except (ValueError, AttributeError, TypeError):
+            s, pose = float("nan"), None
+        if pose is None or not np.isfinite(s) or not valid_pose(pose):
+            self.bad_gt += 1
+            return
+        self.gt_stamps.append(s)
+        self.gt_poses.append(pose)
+        self.gt_frame = str(getattr(msg, "child_frame_id", "")) or self.gt_frame
+
     def _dispatch(self, topic: str, t: float, msg: Any) -> None:
         opt, monitor = self.opt, self.monitor
         if topic == opt.points_topic:
@@ -287,15 +307,22 @@ class _Feed:
         elif topic == opt.odom_topic:
             monitor.add_odometry(msg, received=t)
         elif topic == opt.gt_topic:
-            try:
-                s, pose = bag.odometry_pose(msg)
-                self.gt_stamps.append(s)
-                self.gt_poses.append(pose)
-                self.gt_frame = str(getattr(msg, "child_frame_id", "")) or self.gt_frame
-            except (ValueError, AttributeError, TypeError):
-                pass
+            self._ground_truth(msg)
         elif topic == opt.tf_static_topic:
             monitor.add_tf_static(msg)
+
+
+def _static_transforms_first(monitor: Monitor, source: Any, topic: str, topics: dict) -> None:
+    """The bag's /tf_static before any scan, wherever it was recorded (a recorder started before
+    robot_state_publisher, a sidecar bag): a scan's pose must not take one extrinsic and a later scan's another.
+    What cannot be read here is read (and counted) with the other messages."""
+    if topic not in topics:
+        return
+    try:
+        for _, _, msg in bag.read_messages(source, [topic], storage.ReadLog(), strict=False):
+            monitor.add_tf_static(msg)
+    except Exception:  # noqa: BLE001 - the main read meets the same damage and reports it
+        pass
 
 
 def _why_no_window(counters: dict, window: SlidingWindow, last_error: str) -> str:
