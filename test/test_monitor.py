@@ -11,7 +11,7 @@ import pytest
 from topometric_ros import bag, geometry
 from topometric_ros.cloud import make_cloud, rosbags_types
 from topometric_ros.config import load_config
-from topometric_ros.monitor import Monitor, StaticTransforms
+from topometric_ros.monitor import MAX_CLOUD_NOTES, OTHER_CLOUD_NOTES, Monitor, StaticTransforms
 from topometric_ros.pipeline import ProcessedScan, WindowResult
 
 SENSOR_HEIGHT = 1.0
@@ -178,6 +178,11 @@ def test_the_last_cloud_says_why_its_points_or_fields_were_not_all_used():
                                                                      "azimuth instead": 1}
     m.add_cloud(make_cloud({**fields, "ring": ring % 16}, 0.15, "velodyne", types))
     assert m.last_note == "" and m.counters["bad_beam_points"] == 8
+    for k in range(10):  # time fields that span 1.1, 1.2, ... 2 s: ten distinct notes, every cloud counted
+        span = np.linspace(0, 1.1 + 0.1 * k, 40)
+        m.add_cloud(make_cloud({**fields, "ring": ring % 16, "time": span}, 0.25 + 0.1 * k, "velodyne", types))
+    assert len(m.cloud_notes) == MAX_CLOUD_NOTES + 1 and sum(m.cloud_notes.values()) == 11
+    assert m.cloud_notes[OTHER_CLOUD_NOTES] == 3 and "spans 2 s" in m.last_note
 
 
 def test_static_transform_chains_compose():

@@ -43,6 +43,7 @@ COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue
 DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "dropped_clock",
                  "scan_errors")
 MAX_CLOUD_NOTES = 8  # distinct cloud notes kept for the reports
+OTHER_CLOUD_NOTES = "other notes (more distinct ones than the reports list; the last cloud's is on the console)"
 MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
 STAGE_QUEUE = 2  # live: items between two per-scan stages (the upstream stage waits when full)
 
@@ -228,7 +229,8 @@ class Monitor:
         self.model = pipeline.sensor_model(self.config)  # sensors.SensorModel or None (layout read off each cloud)
         self.layout = ""  # driver layout of the last cloud (sensors.LAYOUTS name, "" unknown)
         self.last_note = ""  # why the last cloud's fields or points were not all used (an unusable time field, bad beams)
-        self.cloud_notes: dict[str, int] = {}  # clouds per such note (the first MAX_CLOUD_NOTES distinct ones)
+        self.cloud_notes: dict[str, int] = {}  # clouds per such note (the first MAX_CLOUD_NOTES distinct ones, then
+        # OTHER_CLOUD_NOTES)
         self.clock = ClockWatch(self.config.health.clock_jump_s)
         self.clock_fault: tuple[float | None, str] | None = None  # the last clock fault: (receive time, reason)
         self.clock_events: deque = deque(maxlen=1000)  # every clock fault, for the reports
@@ -334,9 +336,9 @@ class Monitor:
         self.count("no_return_points", scan.dropped.get("no_return", 0))
         self.count("bad_beam_points", scan.dropped.get("bad_beam", 0))
         self.last_note = "; ".join(filter(None, [*scan.notes, bad_beam_note(scan.dropped.get("bad_beam", 0), model)]))
-        for note in scan.notes:
-            if note in self.cloud_notes or len(self.cloud_notes) < MAX_CLOUD_NOTES:
-                self.cloud_notes[note] = self.cloud_notes.get(note, 0) + 1
+        for note in scan.notes:  # past MAX_CLOUD_NOTES distinct notes, the clouds are still counted
+            key = note if note in self.cloud_notes or len(self.cloud_notes) < MAX_CLOUD_NOTES else OTHER_CLOUD_NOTES
+            self.cloud_notes[key] = self.cloud_notes.get(key, 0) + 1
         self.layout = scan.layout or self.layout
         extra = {"labels": scan.labels, "ring": scan.beam, "intensity": scan.intensity, "time": scan.time}
         return self._accept(scan.stamp, scan.points, extra, received, finite=True, columns=scan.columns,
