@@ -3,9 +3,9 @@
     ros2 launch topometric_ros monitor.launch.py use_sim_time:=true points_topic:=/velodyne_points
     ros2 launch topometric_ros monitor.launch.py namespace:=robot1 aggregator:=true config:=/path/to/my.yaml
 
-points_topic / odom_topic, when given, win over the parameter file (they are passed as parameters after
-it); empty (the default) keeps the file's. The parameter files' top key is "/**", so they match the
-nodes under any namespace.
+points_topic / odom_topic and use_sim_time, when given, win over the parameter file (they are passed as
+parameters after it); empty (the default) keeps the file's (use_sim_time: false unless the file sets it). The
+parameter files' top key is "/**", so they match the nodes under any namespace.
 """
 import os
 
@@ -15,28 +15,39 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from launch_ros.parameter_descriptions import ParameterValue
 
 
-def _monitor(context):
-    """The monitor node: the parameter file, use_sim_time, then the topic arguments that were given."""
+def _sim_time(context) -> dict:
+    """{"use_sim_time": bool} when the argument was given, else {} (the parameter file's value stands)."""
+    text = LaunchConfiguration("use_sim_time").perform(context).strip().lower()
+    if not text:
+        return {}
+    if text not in ("true", "false"):
+        raise ValueError(f"use_sim_time must be true or false, got {text!r}")
+    return {"use_sim_time": text == "true"}
+
+
+def _nodes(context):
+    """The monitor node: the parameter file, then the arguments that were given; and the aggregator."""
     topics = {name: LaunchConfiguration(name).perform(context) for name in ("points_topic", "odom_topic")}
-    params = [LaunchConfiguration("config"),
-              {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}]
-    given = {name: value for name, value in topics.items() if value}
-    if given:
-        params.append(given)
+    given = {**{name: value for name, value in topics.items() if value}, **_sim_time(context)}
+    share = get_package_share_directory("topometric_ros")
     return [Node(package="topometric_ros", executable="topometric_monitor", name="topometric_monitor",
-                 namespace=LaunchConfiguration("namespace"), parameters=params, output="screen")]
+                 namespace=LaunchConfiguration("namespace"), parameters=[LaunchConfiguration("config"), given],
+                 output="screen"),
+            Node(package="diagnostic_aggregator", executable="aggregator_node", name="analyzers",
+                 namespace=LaunchConfiguration("namespace"),
+                 parameters=[os.path.join(share, "config", "analyzers.yaml"), _sim_time(context)],
+                 condition=IfCondition(LaunchConfiguration("aggregator")), output="screen")]
 
 
 def generate_launch_description():
     share = get_package_share_directory("topometric_ros")
-    use_sim_time = ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)
     return LaunchDescription([
         DeclareLaunchArgument("config", default_value=os.path.join(share, "config", "topometric.yaml"),
                               description="parameter file of the monitor"),
-        DeclareLaunchArgument("use_sim_time", default_value="false", description="use /clock (bag replay)"),
+        DeclareLaunchArgument("use_sim_time", default_value="",
+                              description="use /clock (bag replay): true or false; empty = the parameter file's"),
         DeclareLaunchArgument("points_topic", default_value="",
                               description="PointCloud2 topic; empty = the parameter file's points_topic"),
         DeclareLaunchArgument("odom_topic", default_value="",
@@ -44,9 +55,5 @@ def generate_launch_description():
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the nodes"),
         DeclareLaunchArgument("aggregator", default_value="false",
                               description="also start diagnostic_aggregator with config/analyzers.yaml"),
-        OpaqueFunction(function=_monitor),
-        Node(package="diagnostic_aggregator", executable="aggregator_node", name="analyzers",
-             namespace=LaunchConfiguration("namespace"),
-             parameters=[os.path.join(share, "config", "analyzers.yaml"), {"use_sim_time": use_sim_time}],
-             condition=IfCondition(LaunchConfiguration("aggregator")), output="screen"),
+        OpaqueFunction(function=_nodes),
     ])

@@ -335,6 +335,52 @@ def test_statuses_follow_diagnostic_updater_conventions(drift_run):
     assert all(0.0 <= float(w["values"][f"{r}_se"]) < float("inf") for r in ("rot_rate", "trans_rate")), w["values"]
 
 
+def test_sim_time_played_fast_with_odometry_before_the_first_clock(ros_env, drift_bag, tmp_path):
+    """use_sim_time, two odometry messages before any /clock (the node clock reads 0: no receive time, not
+    an offset of the stamps' whole epoch), then the bag at 4× with /clock: no clock fault, the scans scored,
+    and the scan rate in sim time (5 Hz, not 20); diagnostic_updater.period given as a whole number."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from topometric_ros import bag
+
+    bag_path, _ = drift_bag
+    stamps, _ = bag.read_odometry(bag_path, "/odom")
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    odom = listener.node.create_publisher(Odometry, "/odom", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    node = start_node(tmp_path, {**BASE, "use_sim_time": True}, extra=["-p", "diagnostic_updater.period:=1"])
+    player = None
+    try:
+        end = time.monotonic() + 60
+        while listener.node.count_subscribers("/odom") == 0 and time.monotonic() < end:
+            assert node.popen.poll() is None, node.log()[-3000:]
+            time.sleep(0.1)
+        for stamp in stamps[:2]:
+            msg = Odometry()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = int(stamp), int(round((stamp % 1) * 1e9))
+            msg.header.frame_id, msg.child_frame_id, msg.pose.pose.orientation.w = "map", "base_link", 1.0
+            odom.publish(msg)
+        time.sleep(1.0)
+        player = Proc([sys.executable, str(PLAYER), str(bag_path), "--clock", "--rate", "4", "--clock-tail", "4",
+                       "--wait-subscribers", "60"], tmp_path, "player")
+        player.popen.wait(120)
+        time.sleep(1.0)
+    finally:
+        node.stop()
+        if player is not None:
+            player.stop()
+        listener.close()
+    clock = statuses(listener, f"{NODE}: clock")
+    assert clock and all(level(s) == "OK" for _, _, s in clock), [s.message for _, _, s in clock if level(s) != "OK"]
+    assert all(values(s).get("dropped_clock", "0") == "0" for _, _, s in clock)
+    windows = windows_of(listener)  # 40 at most (200 scans, 5 a window)
+    assert len(windows) >= 25, (len(windows), node.log()[-2000:])
+    rates = [float(values(s)["Actual frequency (Hz)"]) for _, _, s in statuses(listener, f"{NODE}: scan rate")
+             if int(values(s).get("Events in window", 0)) > 0]
+    assert rates and 3.5 < np.median(rates) < 6.5, rates
+
+
 def test_markers_are_in_the_map_frame(drift_run):
     arrays = [m for _, m in drift_run["markers"]]
     assert len(arrays) >= 30
@@ -556,7 +602,8 @@ def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_pat
 
 def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
     """STALE without clouds: the status says the cloud topic has no publisher, and once one is there (a
-    publisher that sends nothing: as if its clouds were lost on the way) that it has one, and where to look."""
+    publisher that sends nothing: as if its clouds were lost on the way) that it has one, and where to look;
+    without odometry, the same for the odometry topic and a QoS that cannot match."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
@@ -596,6 +643,14 @@ def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
         assert got, [s.message for _, _, s in statuses(listener)][-3:]
         message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
         assert message.startswith("no scans for") and "socket buffers" not in message, message
+        # no odometry either: no publisher, then one offering best effort, which odom_qos reliable never hears
+        assert "(/odom has no publisher)" in message, message
+        from nav_msgs.msg import Odometry
+
+        listener.node.create_publisher(Odometry, "/odom", qos_profile_sensor_data)
+        got = listener.wait_for("/diagnostics", stale("1 of its 1 publishers offer best effort, which odom_qos "
+                                                      "reliable never receives: set odom_qos sensor_data"), 30, node)
+        assert got, [s.message for _, _, s in statuses(listener)][-3:]
     finally:
         node.stop()
         listener.close()
@@ -701,19 +756,25 @@ def ament_prefix(tmp_path_factory):
 
 def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_groups_us(
         ros_env, tmp_path, ament_prefix):
-    """ros2 launch with namespace:=robot1, a parameter file that sets other topics and window.size 7, and
-    points_topic:=/launch_points: the node subscribes to /launch_points (not the file's), keeps the file's
-    odom topic, window.size 7 holds under the namespace ('/**'), and the real diagnostic_aggregator
-    (config/analyzers.yaml) shows our status under its SLAM/Map consistency path on /diagnostics_agg."""
+    """ros2 launch with namespace:=robot1, a parameter file that sets other topics, window.size 7 and
+    use_sim_time, and points_topic:=/launch_points: the node subscribes to /launch_points (not the file's), keeps
+    the file's odom topic, window.size 7 and use_sim_time (no use_sim_time argument given) under the namespace
+    ('/**'), and the real diagnostic_aggregator (config/analyzers.yaml) shows our status under its SLAM/Map
+    consistency path on /diagnostics_agg (this test publishes /clock)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from rcl_interfaces.srv import GetParameters
+    from rcl_interfaces.srv import GetParameters, SetParameters
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
 
     STALE_LEVEL = DiagnosticStatus.STALE
 
     yaml_file = write_params(tmp_path / "mine.yaml", {**BASE, "points_topic": "/yaml_points",
-                                                      "odom_topic": "/yaml_odom", "window.size": 7})
+                                                      "odom_topic": "/yaml_odom", "window.size": 7,
+                                                      "use_sim_time": True})
     env = {"AMENT_PREFIX_PATH": f"{ament_prefix}:{os.environ.get('AMENT_PREFIX_PATH', '')}"}
     listener = Listener({"/diagnostics_agg": DiagnosticArray})
+    clock = listener.node.create_publisher(Clock, "/clock", 10)
+    listener.node.create_timer(0.02, lambda: clock.publish(Clock(clock=listener.node.get_clock().now().to_msg())))
     launch = Proc(["ros2", "launch", "topometric_ros", "monitor.launch.py", f"config:={yaml_file}",
                    "points_topic:=/launch_points", "namespace:=robot1", "aggregator:=true"], tmp_path, "launch", env)
     try:
@@ -737,12 +798,22 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
         assert [s.node_name for s in listener.node.get_subscriptions_info_by_topic("/yaml_odom")] == [NODE]
         client = listener.node.create_client(GetParameters, f"/robot1/{NODE}/get_parameters")
         assert client.wait_for_service(20)
-        future = client.call_async(GetParameters.Request(names=["window.size", "points_topic"]))
+        future = client.call_async(GetParameters.Request(names=["window.size", "points_topic", "use_sim_time"]))
         end = time.monotonic() + 10
         while not future.done() and time.monotonic() < end:
             time.sleep(0.05)
-        size, topic = future.result().values
-        assert size.integer_value == 7 and topic.string_value == "/launch_points"
+        size, topic, sim_time = future.result().values
+        assert size.integer_value == 7 and topic.string_value == "/launch_points" and sim_time.bool_value
+        # every parameter is read once at start: the Updater's too (a change would be accepted and ignored)
+        setter = listener.node.create_client(SetParameters, f"/robot1/{NODE}/set_parameters")
+        assert setter.wait_for_service(20)
+        future = setter.call_async(SetParameters.Request(parameters=[
+            Parameter("diagnostic_updater.period", Parameter.Type.DOUBLE, 5.0).to_parameter_msg()]))
+        end = time.monotonic() + 10
+        while not future.done() and time.monotonic() < end:
+            time.sleep(0.05)
+        refused = future.result().results[0]
+        assert not refused.successful and "read-only" in refused.reason, refused
     finally:
         code, seconds = launch.sigint(15)
         launch.stop()

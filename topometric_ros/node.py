@@ -11,7 +11,8 @@ conventions (its Updater publishes on /diagnostics every ``diagnostic_updater.pe
   completes (so every window reaches /diagnostics) and repeated by the Updater; STALE when input stops;
   ERROR with the reason when scans arrive but every one fails (Monitor.check, checked every CHECK_PERIOD_S
   and published at once when the state changes);
-- ``scan rate``: diagnostic_updater.FrequencyStatus of the clouds received;
+- ``scan rate``: the clouds received per second of the node's clock (sim time on use_sim_time), with
+  diagnostic_updater.FrequencyStatus's levels and keys (ScanRate);
 - ``clock``: ERROR while clouds or odometry arrive on another clock (a clock fault, not drift);
 - ``latency``: node clock minus the stamp of a window's last scan when its result is out (s).
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+from collections import deque
 
 import diagnostic_updater
 import numpy as np
@@ -32,11 +34,12 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import ColorRGBA, Header
@@ -70,6 +73,61 @@ def _descriptor(name: str, value, description: str) -> ParameterDescriptor:
     if name in parameters.ALL_CHOICES:
         d.additional_constraints = "one of: " + ", ".join(parameters.ALL_CHOICES[name])
     return d
+
+
+class ScanRate(diagnostic_updater.DiagnosticTask):
+    """diagnostic_updater.FrequencyStatus's rule (ERROR no events, WARN below low_hz × (1 − tolerance) or above
+    high_hz × (1 + tolerance), over the last ``window`` runs of the Updater, same keys) on the node's clock:
+    Jazzy's Python FrequencyStatus builds a clock of its own, which reads system time, so a bag played at 5×
+    on use_sim_time read 5× the sensor's rate (the C++ one takes the node's clock, ros/diagnostics#217)."""
+
+    def __init__(self, clock, low_hz: float, high_hz: float, tolerance: float = 0.1, window: int = 5):
+        super().__init__("scan rate")
+        self._clock, self.low_hz, self.high_hz, self.tolerance = clock, low_hz, high_hz, tolerance
+        self._lock = threading.Lock()
+        self._count = 0
+        self._runs: deque = deque(maxlen=window)  # (clock s, count) of the last runs
+        self._start = self._seconds() or None  # clock s counting starts at (None: a sim clock not going yet)
+
+    def _seconds(self) -> float:
+        return self._clock.now().nanoseconds * 1e-9
+
+    def tick(self) -> None:
+        with self._lock:
+            self._count += 1
+            if self._start is None:
+                self._start = self._seconds() or None
+
+    def run(self, stat):
+        with self._lock:
+            now, count = self._seconds(), self._count
+            if not self._runs:  # the first run: from the start (on use_sim_time, the first tick on /clock)
+                self._runs.extend([(self._start or now, 0)] * self._runs.maxlen)
+            then, before = self._runs[0]
+            self._runs.append((now, count))
+        events, span = count - before, now - then
+        hz = events / span if span > 0 else float("nan")
+        if events == 0:
+            stat.summary(DiagnosticStatus.ERROR, "No events recorded.")
+        elif hz < self.low_hz * (1 - self.tolerance):
+            stat.summary(DiagnosticStatus.WARN, "Frequency too low.")
+        elif hz > self.high_hz * (1 + self.tolerance):
+            stat.summary(DiagnosticStatus.WARN, "Frequency too high.")
+        else:
+            stat.summary(DiagnosticStatus.OK, "Desired frequency met")
+        stat.add("Events in window", str(events))
+        stat.add("Events since startup", str(count))
+        stat.add("Duration of window (s)", f"{span:f}")
+        stat.add("Actual frequency (Hz)", f"{hz:f}")
+        return stat
+
+
+def _read_only_updater(changes) -> SetParametersResult:
+    """Refuse runtime changes of the Updater's parameters, read once at start like all of ours."""
+    names = [p.name for p in changes if p.name in parameters.UPDATER_SPEC]
+    if names:
+        return SetParametersResult(successful=False, reason=f"{', '.join(names)}: read-only (set at start)")
+    return SetParametersResult(successful=True)
 
 
 def _qos(name: str) -> QoSProfile:
@@ -115,8 +173,10 @@ class MonitorNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
+        self._updater_period_as_float()
         self.updater = diagnostic_updater.Updater(self)  # declares diagnostic_updater.period / use_fqn
         p = self._declare_parameters()
+        self.add_on_set_parameters_callback(_read_only_updater)
         from .replay import load_segmenter, network_options
 
         segmenter = load_segmenter(self.config) if self.config.segmentation.mode == "network" else None
@@ -136,8 +196,7 @@ class MonitorNode(Node):
         self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window)
         self.updater.setHardwareID(p["hardware_id"] or "none")
         self.updater.add(TASK, self._consistency_task)
-        self.rate = diagnostic_updater.FrequencyStatus(diagnostic_updater.FrequencyStatusParam(
-            {"min": p["scan_rate_min_hz"], "max": p["scan_rate_max_hz"]}, 0.1, 5), "scan rate")
+        self.rate = ScanRate(self.get_clock(), p["scan_rate_min_hz"], p["scan_rate_max_hz"])
         self.updater.add(self.rate)
         self.updater.add("latency", self._latency_task)
         self.updater.add("clock", self._clock_task)
@@ -157,6 +216,15 @@ class MonitorNode(Node):
             f"diagnostics on /diagnostics as '{self.updater.node_name}: {TASK}'")
 
     # ------------------------------------------------------------ parameters
+    def _updater_period_as_float(self) -> None:
+        """A whole number given for diagnostic_updater.period (``:=2``, YAML ``2``) as the float the Updater
+        declares it as: a float parameter of ours takes one too (the Updater's own declaration would stop the
+        node)."""
+        name = "diagnostic_updater.period"
+        given = getattr(self, "_parameter_overrides", {}).get(name)
+        if given is not None and given.type_ == Parameter.Type.INTEGER:
+            self._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(given.value))
+
     def _declare_parameters(self) -> dict:
         """Declare every parameter (node, config leaves), check each value whatever its type, refuse keys
         the node does not know; sets self.config and returns the node's own parameter values."""
@@ -186,16 +254,22 @@ class MonitorNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _received(self) -> float | None:
+        """The node clock (s) as a message's receive time; None while it reads 0 (use_sim_time before the first
+        /clock): a 0 would teach the clock watch an offset of the stamps' whole epoch."""
+        ns = self.get_clock().now().nanoseconds
+        return ns * 1e-9 if ns else None
+
     def _on_cloud(self, raw: bytes) -> None:
         """A serialized sensor_msgs/PointCloud2 (CDR), read with rosbags (numpy views, no per-field copies)."""
         msg = self._typestore.deserialize_cdr(raw, CLOUD_TYPE)
         self.rate.tick()
         if not self.p["hardware_id"] and msg.header.frame_id and self.updater.hwid != msg.header.frame_id:
             self.updater.setHardwareID(msg.header.frame_id)
-        self.monitor.add_cloud(msg, received=self._now())
+        self.monitor.add_cloud(msg, received=self._received())
 
     def _on_odom(self, msg: Odometry) -> None:
-        self.monitor.add_odometry(msg, received=self._now())
+        self.monitor.add_odometry(msg, received=self._received())
 
     def _on_window(self, result, scans) -> None:
         """Worker thread: keep the window's status, publish it now (every window reaches /diagnostics)."""
@@ -229,7 +303,8 @@ class MonitorNode(Node):
         with self._lock:
             last = self._last_window
         if checked is not None:
-            stat.summary(LEVELS[checked[0]], checked[1] + self._lost_clouds_hint(checked))
+            stat.summary(LEVELS[checked[0]], checked[1] + self._lost_clouds_hint(checked) +
+                         self._lost_odometry_hint(checked))
             values = {**self._monitor_values(), "last_error": self.monitor.last_error}
         elif last is not None:
             stat.summary(LEVELS[last[0]], last[1])
@@ -256,6 +331,21 @@ class MonitorNode(Node):
         return (f" ({some}: if it publishes, its clouds are lost "
                 f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md; "
                 f"points_qos reliable does not match a best-effort driver)")
+
+    def _lost_odometry_hint(self, checked: tuple[str, str]) -> str:
+        """For a STALE without odometry: whether the odometry topic has publishers, and a QoS that cannot match
+        (odom_qos reliable against a best-effort publisher: nothing is ever delivered)."""
+        if checked[0] != "STALE" or "no odometry" not in checked[1]:
+            return ""
+        topic = self.resolve_topic_name(self.p["odom_topic"])
+        infos = self.get_publishers_info_by_topic(topic)
+        if not infos:
+            return f" ({topic} has no publisher)"
+        best_effort = sum(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
+        if best_effort and self.p["odom_qos"] == "reliable":
+            return (f" ({topic}: {best_effort} of its {len(infos)} publishers offer best effort, which odom_qos "
+                    f"reliable never receives: set odom_qos sensor_data)")
+        return ""
 
     def _monitor_values(self) -> dict:
         """The monitor's counters, where its extrinsic comes from and its cloud note, as status values (no
