@@ -48,6 +48,18 @@ def test_azimuth_times_follow_a_clockwise_sweep_from_the_first_point():
     assert sweep_span(0.1, "last") == (-0.1, 0.0) and sweep_span(0.1, "first") == (0.0, 0.1)
 
 
+def test_a_non_repetitive_drivers_cloud_without_times_is_not_deskewed_by_azimuth():
+    """No sensor named: a livox_ros_driver2 cloud whose time field is unusable has no azimuth order of firing
+    (not deskewed), a Velodyne one has (clockwise, velodyne_driver stamps the last point)."""
+    from topometric_ros.deskew import sweep_to_deskew
+    from topometric_ros.sensors import sensor
+
+    assert sweep_to_deskew(None, "livox", None, "auto") is None
+    assert sweep_to_deskew(None, "livox", None, "on") is None
+    assert sweep_to_deskew(None, "livox", sensor("Mid-360"), "auto") is None
+    assert sweep_to_deskew(None, "velodyne", None, "auto") == (-0.1, 0.0, 0.1, "last")  # stamped at its end
+
+
 def test_the_monitor_waits_for_odometry_past_the_sweep_before_it_deskews():
     cfg = load_config(overrides={"segmentation.mode": "none", "window.size": 2, "window.pose_wait_s": 0.0})
     m = Monitor(cfg)

@@ -7,6 +7,7 @@ import copy
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -335,6 +336,51 @@ def test_a_late_tf_static_and_bad_ground_truth_lose_nothing_and_say_so(office_ba
     assert "2 ground-truth messages of /odom_gt left out: no finite rigid transform (RPE uses the others)" in \
         late.summary["notes"]
     assert all(np.isfinite(w["rpe"]) for w in late.windows)
+
+
+def test_topics_a_config_file_names_are_the_replays_unless_a_flag_names_others(office_bag, tmp_path, capsys):
+    """A robot's parameter file (odom_topic /slam/odometry) given as --config picks that topic in a bag that
+    has /odom too; --odom-topic wins over it; the shipped file (the node's default topics) names none."""
+    import yaml
+
+    bag_path, _ = office_bag
+    both = rewrite(bag_path, tmp_path / "both", lambda t, m: [(t, m), ("/slam/odometry", m)] if t == "/odom"
+                   else [(t, m)], scans=30)
+    robot = tmp_path / "robot.yaml"
+    robot.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"odom_topic": "/slam/odometry",
+                                                                  "segmentation.mode": "labels"}}}))
+    code, out, summary = replay_cli(both, tmp_path / "o1", capsys, "--config", str(robot))
+    assert code == 0 and summary["odom_topic"] == "/slam/odometry", out
+    code, out, summary = replay_cli(both, tmp_path / "o2", capsys, "--config", str(robot), "--odom-topic", "/odom")
+    assert code == 0 and summary["odom_topic"] == "/odom", out
+    code, out, summary = replay_cli(both, tmp_path / "o3", capsys, "--config",
+                                    str(Path(__file__).resolve().parents[1] / "config" / "topometric.yaml"),
+                                    "--segmentation", "labels")
+    assert code == 0 and summary["odom_topic"] == "/odom" and "other nav_msgs/msg/Odometry topics too" in out, out
+
+
+def test_inspect_gives_a_cloud_that_cannot_be_segmented_its_row_and_goes_on(office_bag, tmp_path, capsys):
+    """labels mode, the third cloud without its label field: that row says why, the other five are inspected."""
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    seen = []
+
+    def third_unlabelled(topic, msg):
+        if topic == "/points":
+            seen.append(topic)
+            if len(seen) == 3:
+                msg = copy.copy(msg)
+                msg.fields = [f for f in msg.fields if f.name != "label"]
+        return [(topic, msg)]
+
+    path = rewrite(bag_path, tmp_path / "third", third_unlabelled)
+    assert cli.main(["inspect", str(path), "--out", str(tmp_path / "out"), "--no-plot", "--quiet",
+                     "--segmentation", "labels"]) == 0
+    with open(tmp_path / "out" / "scans.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 6 and [bool(r["error"]) for r in rows] == [False, False, True, False, False, False], rows
+    assert "label" in rows[2]["error"] and all(int(r["planes"]) > 0 for i, r in enumerate(rows) if i != 2)
 
 
 def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):

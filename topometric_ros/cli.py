@@ -74,6 +74,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _topics(args: argparse.Namespace) -> dict[str, str]:
+    """points_topic / odom_topic / tf_static_topic for a bag replay: a --*-topic flag, else what the --config
+    file names when it is not the node's default (a robot's own topics), else "" (the bag's, see
+    bag.pick_topic)."""
+    from .config import read_parameters
+    from .parameters import NODE_SPEC
+
+    params = read_parameters(args.config) if getattr(args, "config", None) else {}
+    out = {}
+    for name in ("points_topic", "odom_topic", "tf_static_topic"):
+        given = getattr(args, name, "") or ""
+        named = str(params.get(name, "") or "")
+        out[name] = given or (named if named != NODE_SPEC[name][0] else "")
+    return out
+
+
 def _monitor_config(args: argparse.Namespace):
     """Config from --config, then --set KEY=VALUE pairs, then the dedicated flags."""
     import yaml
@@ -145,7 +161,9 @@ def _add_engine_args(p: argparse.ArgumentParser) -> None:
 def cmd_replay(args: argparse.Namespace) -> int:
     from .replay import ReplayOptions, format_table, replay
 
-    opt = ReplayOptions(points_topic=args.points_topic, odom_topic=args.odom_topic, gt_topic=args.gt_topic,
+    topics = _topics(args)
+    opt = ReplayOptions(points_topic=topics["points_topic"], odom_topic=topics["odom_topic"], gt_topic=args.gt_topic,
+                        tf_static_topic=topics["tf_static_topic"] or ReplayOptions.tf_static_topic,
                         rate=args.rate, plot=not args.no_plot, progress=not args.quiet)
     res = replay(args.bag, args.out, _monitor_config(args), opt)
     print(format_table(res.windows, res.summary))
@@ -173,8 +191,9 @@ def cmd_audit(args: argparse.Namespace) -> int:
         return 2
     from .replay import ReplayOptions
 
-    given = (("points_topic", args.points_topic), ("odom_topic", args.odom_topic), ("gt_topic", args.gt_topic))
-    options = {k: v for k, v in given if v != getattr(ReplayOptions, k)}  # defaults left out of the cache key
+    options = {k: v for k, v in _topics(args).items() if v and v != getattr(ReplayOptions, k)}
+    if args.gt_topic != ReplayOptions.gt_topic:  # "" = none
+        options["gt_topic"] = args.gt_topic  # defaults are left out of the cache key
     try:
         res = audit(bags, args.out, _monitor_config(args), engine=args.engine, workers=args.workers,
                     address=args.address or None, options=options, force=args.force, progress=not args.quiet)
@@ -195,7 +214,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     config = _monitor_config(args)
     segmenter = load_segmenter(config) if config.segmentation.mode == "network" else None
     log = ReadLog()
-    rows = inspect_bag(args.bag, args.out, config, args.points_topic, args.every, args.limit, segmenter,
+    rows = inspect_bag(args.bag, args.out, config, _topics(args)["points_topic"], args.every, args.limit, segmenter,
                        plot=not args.no_plot, progress=not args.quiet, log=log)
     print(f"segmentation {config.segmentation.mode}{network_options(config, getattr(segmenter, 'precision', ''))}; "
           f"sensor {config.sensor.model or 'read off each cloud'}")
@@ -209,8 +228,27 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 1 if not rows or all("error" in r for r in rows) else 0
 
 
+def _alarms_mode_options(args: argparse.Namespace) -> str:
+    """Why the alarms options do not go together ("" when they do): options of one mode given to another
+    would be dropped silently."""
+    calibrating = args.calibrate or args.calibrate_rates
+    problems = []
+    if args.grid and not args.calibrate_rates:
+        problems.append("--grid sweeps settings for --calibrate-rates only")
+    if args.margin is not None and not args.calibrate:
+        problems.append("--margin is --calibrate's")
+    if calibrating and args.split == "evaluation":
+        problems.append("calibration runs on the calibration split only (the evaluation split is never tuned on)")
+    return "; ".join(problems)
+
+
 def cmd_alarms(args: argparse.Namespace) -> int:
     from .experiments.alarms import SCALES, calibrate, format_calibration, format_detection, run_detection
+
+    mismatch = _alarms_mode_options(args)
+    if mismatch:
+        print(f"error: {mismatch}", file=sys.stderr)
+        return 2
 
     plan = {"rate": args.rate, "speeds": args.speeds, "estimates": args.estimates, "odometry": args.odometry,
             "scales": args.scales or SCALES, "engine": args.engine, "workers": args.workers,
@@ -232,13 +270,14 @@ def cmd_alarms(args: argparse.Namespace) -> int:
     if args.calibrate:
         doc = calibrate(args.out, _monitor_config(args), args.scene, frames=args.frames,
                         free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
-                        target_per_10min=args.target, margin_sigma=args.margin, progress=not args.quiet, **plan)
+                        target_per_10min=args.target, margin_sigma=0.25 if args.margin is None else args.margin,
+                        progress=not args.quiet, **plan)
         print(format_calibration(doc))
         print(f"wrote {Path(args.out) / 'calibration.json'}, calibration.csv, calibration.png")
         return 0
     table = run_detection(args.out, _monitor_config(args), args.scene, frames=args.frames,
                           free_bags=args.free_bags or 5, free_frames=args.free_frames, within=args.within,
-                          progress=not args.quiet, split=args.split, **plan)
+                          progress=not args.quiet, split=args.split or "evaluation", **plan)
     print(format_detection(table))
     print(f"wrote {Path(args.out) / 'detection.json'}, detection.csv, detection.png")
     return 0
@@ -723,18 +762,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scenes (comma list)")
     a.add_argument("--frames", type=_positive, default=400, help="scans per drift bag (400 = 80 s)")
     a.add_argument("--free-bags", type=_count, default=0, help="drift-free bags per group of the split (0 = 5)")
-    a.add_argument("--split", choices=("evaluation", "calibration"), default="evaluation",
-                   help="bag set of the table (thresholds are calibrated on 'calibration' only)")
-    a.add_argument("--calibrate", action="store_true",
-                   help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
-    a.add_argument("--calibrate-rates", action="store_true",
-                   help="sweep the relative rate limits (learned floor, motion shares) on the calibration split")
+    a.add_argument("--split", choices=("evaluation", "calibration"), default=None,
+                   help="bag set of the table (default evaluation; thresholds are calibrated on 'calibration' only)")
+    mode = a.add_mutually_exclusive_group()
+    mode.add_argument("--calibrate", action="store_true",
+                      help="sweep health.warn_sigma on the calibration split and print the smallest within --target")
+    mode.add_argument("--calibrate-rates", action="store_true",
+                      help="sweep the relative rate limits (learned floor, motion shares) on the calibration split")
     a.add_argument("--grid", type=_grid_axis, action="append", default=None, metavar="KEY=V1,V2",
                    help="--calibrate-rates: sweep these health settings instead of the default grid (repeatable, "
                         "e.g. --grid rate_sigma=0,1,2; the others stay at their configured values)")
     a.add_argument("--target", type=_non_negative, default=0.5, help="calibration: false WARN per 10 min allowed")
-    a.add_argument("--margin", type=_non_negative, default=0.25,
-                   help="calibration: the target must also hold this many sigma below the chosen one")
+    a.add_argument("--margin", type=_non_negative, default=None,
+                   help="--calibrate: the target must also hold this many sigma below the chosen one (default 0.25)")
     a.add_argument("--free-frames", type=_positive, default=750, help="scans per drift-free bag (750 = 150 s)")
     a.add_argument("--within", type=_positive, default=2, help="an episode counts when alarmed within this many windows")
     a.add_argument("--speeds", type=_floats, default=(1.2,), help="robot speeds, m/s (e.g. 0.3,1.5,4,10)")

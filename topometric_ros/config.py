@@ -297,21 +297,26 @@ def flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
     """Defaults, then the YAML file at ``path`` (plain or ROS 2 parameter file; the node-only keys of
     NODE_PARAMETERS are skipped), then ``overrides`` (nested or dotted keys, e.g. {'window.size': 10})."""
-    import yaml
-
     cfg = Config()
     if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"config file not found: {p}")
-        try:
-            doc = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
-        if not isinstance(doc, Mapping):
-            raise ValueError(f"{p}: expected a mapping at the top level")
-        params = _unwrap_ros(doc)
+        params = read_parameters(path)
         cfg = apply(cfg, {k: v for k, v in params.items() if k not in NODE_PARAMETERS})
     if overrides:
         cfg = apply(cfg, overrides)
     return cfg
+
+
+def read_parameters(path: str | Path) -> Mapping[str, Any]:
+    """The keys of a YAML config file (plain, or a ROS 2 parameter file's ros__parameters), unchecked."""
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    try:
+        doc = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ValueError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
+    if not isinstance(doc, Mapping):
+        raise ValueError(f"{p}: expected a mapping at the top level")
+    return _unwrap_ros(doc)

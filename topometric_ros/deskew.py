@@ -58,7 +58,8 @@ def sweep_to_deskew(time: np.ndarray | None, layout: str, model, mode: str,
     if time is not None:
         return float(time.min()), float(time.max()), period, "first"
     known = LAYOUTS.get(layout) or (model.layout if model is not None else None)
-    if (model is not None and model.pattern == "non_repetitive") or (known is None and mode != "on"):
+    pattern = model.pattern if model is not None else (known.pattern if known is not None else "")
+    if pattern == "non_repetitive" or (known is None and mode != "on"):  # no azimuth order of firing
         return None
     stamp_at = known.stamp if known is not None else "first"
     return (*sweep_span(period, stamp_at), period, stamp_at)

@@ -101,8 +101,11 @@ def _inspect_one(k: int, msg, config: Config, model, segmenter, out: Path | None
     frame = Frame(scan.points, np.eye(4), scan.stamp, scan.labels, scan.beam, scan.intensity, scan.time, scan.columns,
                   layout=scan.layout)
     t0 = time.perf_counter()
-    seg = segment_scan(frame, config, segmenter, k)
-    planes, assign = detect_planes(seg.frame.points, seg.labels, seg.grid, config.planes, k, return_inliers=True)
+    try:
+        seg = segment_scan(frame, config, segmenter, k)
+        planes, assign = detect_planes(seg.frame.points, seg.labels, seg.grid, config.planes, k, return_inliers=True)
+    except (ValueError, RuntimeError) as e:  # this cloud's reason in its row; the others go on
+        return {**row, "error": f"{type(e).__name__}: {e}"}
     images, rows, columns = image_shape(seg.grid)  # what the network sees (a non-repetitive grid's is finer)
     row.update(grid=f"{seg.grid.height}x{seg.grid.width}", rows_from=seg.grid.source,
                network_image=f"{images}x{rows}x{columns}", planes=len(planes),

@@ -35,11 +35,13 @@ def written_whole(path: str | Path) -> Iterator[Path]:
 
 
 def write_csv(path: str | Path, rows: list[dict]) -> Path:
-    """rows (dicts with the same keys) -> CSV at path, written whole (:func:`written_whole`)."""
+    """rows (dicts) -> CSV at path, written whole (:func:`written_whole`); the columns are every row's keys in
+    the order first seen (a row without one leaves it empty: inspect's failed clouds have fewer)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    columns = list(dict.fromkeys(key for row in rows for key in row))
     with written_whole(path) as tmp, tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else [])
+        w = csv.DictWriter(f, fieldnames=columns)
         w.writeheader()
         w.writerows(rows)
     return path
