@@ -103,6 +103,26 @@ def test_a_bag_with_no_window_fails_and_a_damaged_one_that_gives_windows_is_note
     assert "damaged bag: " in cut["notes"] and "damaged bag: " in (out / "index.html").read_text()
 
 
+def test_a_bag_that_comes_to_share_its_name_keeps_its_cached_audit(fleet, tmp_path):
+    """night_0 audited alone (folder night_0), then with another bag called night_0 (both get hashed folder
+    names): the first is cached and its folder moved to its new name, only the newcomer runs; alone again,
+    it moves back, still cached."""
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    mine, twin = fleet / "night_0", tmp_path / "robot2" / "night_0"
+    shutil.copytree(mine, twin)
+    out = tmp_path / "audit"
+    assert audit([mine], out, config, engine="local", progress=False).summary["ran"] == 1
+    both = audit([mine, twin], out, config, engine="local", progress=False)
+    assert (both.summary["ran"], both.summary["cached"]) == (1, 1) and [r["cached"] for r in both.rows] == [True, False]
+    names = sorted(p.name for p in (out / "bags").iterdir())
+    assert len(names) == 2 and all(n.startswith("night_0-") for n in names), names  # no stale night_0 left
+    assert both.rows[0]["bag"] != both.rows[1]["bag"] and both.rows[0]["metrics_png"] == \
+        f"bags/{both.rows[0]['bag']}/metrics.png"
+    alone = audit([mine], out, config, engine="local", progress=False)
+    assert (alone.summary["ran"], alone.summary["cached"]) == (0, 1) and alone.rows[0]["bag"] == "night_0"
+    assert (out / "bags" / "night_0" / "windows.json").is_file()
+
+
 def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_path):
     bags = find_bags([str(fleet)])
     assert [b.name for b in bags] == ["night_0", "night_1", "night_2", "night_3", "night_corrupt"]

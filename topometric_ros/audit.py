@@ -99,8 +99,12 @@ def bag_names(bags: list[Path]) -> list[str]:
     """A folder name per bag under OUT/bags: the bag's name, with a short hash of its path where two bags of
     the set share a name."""
     base = [p.stem if p.is_file() else p.resolve().name for p in bags]  # "." names the folder it is
-    return [b if base.count(b) == 1 else f"{b}-{hashlib.sha256(str(p.resolve()).encode()).hexdigest()[:8]}"
-            for b, p in zip(base, bags)]
+    return [b if base.count(b) == 1 else _hashed_name(b, p) for b, p in zip(base, bags)]
+
+
+def _hashed_name(base: str, path: Path) -> str:
+    """``base`` and a short hash of the bag's resolved path (bags of one name told apart)."""
+    return f"{base}-{hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:8]}"
 
 
 # ------------------------------------------------------------------ the cache key
@@ -337,12 +341,39 @@ def plan(bags: list[Path], out: Path, config: Config, options: dict | None = Non
     for path, name in zip(bags, bag_names(bags)):
         key = {"bag": bag_digest(path), **common}
         task = BagTask(str(path), name, config, key, dict(options or {}))
-        manifest = _load_manifest(out / "bags" / name)
-        if not force and manifest and manifest.get("key") == key and (out / "bags" / name / "windows.json").is_file():
+        manifest = None if force else _cached_manifest(out / "bags", name, key) or _moved_here(out / "bags", path,
+                                                                                              name, key)
+        if manifest:
             cached.append({**manifest["row"], "path": str(path), "cached": True})
         else:
             tasks.append(task)
     return tasks, cached
+
+
+def _cached_manifest(folder: Path, name: str, key: dict) -> dict | None:
+    """The manifest of OUT/bags/<name> when it holds ``key`` and the reports are there, else None."""
+    manifest = _load_manifest(folder / name)
+    ok = manifest and manifest.get("key") == key and (folder / name / "windows.json").is_file()
+    return manifest if ok else None
+
+
+def _moved_here(folder: Path, path: Path, name: str, key: dict) -> dict | None:
+    """The same bag audited under its other folder name (a bag of the set now shares its name, or no longer
+    does: bag_names), moved to ``name`` with its manifest renamed; None when there is none (or ``name`` is
+    taken)."""
+    base = bag_names([path])[0]
+    for other in {base, _hashed_name(base, path)} - {name}:
+        manifest = _cached_manifest(folder, other, key)
+        if manifest and Path(manifest["row"].get("path", "")).resolve() == path.resolve() \
+                and not (folder / name).exists():
+            (folder / other).rename(folder / name)
+            row = {**manifest["row"], "bag": name}
+            if row.get("metrics_png"):
+                row["metrics_png"] = f"bags/{name}/metrics.png"
+            manifest = {**manifest, "row": row}
+            write_json(folder / name / MANIFEST, manifest)
+            return manifest
+    return None
 
 
 def _load_manifest(folder: Path) -> dict | None:
