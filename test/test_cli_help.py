@@ -185,3 +185,13 @@ def test_alarms_options_of_another_mode_are_refused_not_dropped(tmp_path):
                              capture_output=True, text=True)
         assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (extra, res.stderr)
         assert not (tmp_path / "x").exists()  # refused before any work
+
+
+def test_eval_seg_flags_that_set_config_leaves_take_their_ranges(tmp_path):
+    """--floor-band 5 (segmentation.floor_band: 0 to 0.2 m) and --knn 99 are refused as --set would refuse
+    them: exit 2 naming the leaf and its range, before any data is read."""
+    for extra, words in ((["--floor-band", "5"], "'segmentation.floor_band' = 5.0 is out of range [0, 0.2]"),
+                         (["--knn", "99"], "'segmentation.knn' = 99 is out of range [0, 15]")):
+        res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "eval-seg", str(tmp_path / "nothing"),
+                              *extra], capture_output=True, text=True)
+        assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (extra, res.stderr)

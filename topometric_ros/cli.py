@@ -74,6 +74,23 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _setting(key: str, kind: type = float):
+    """An argparse type for a flag that sets config leaf ``key``: the value as ``kind``, checked against the
+    leaf's range like --set and --config check it (parameters.check)."""
+    def parse(text: str):
+        from .parameters import check
+
+        value = kind(text)
+        try:
+            check(key, value)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in "invalid float value"
+    return parse
+
+
 def _topics(args: argparse.Namespace) -> dict[str, str]:
     """points_topic / odom_topic / tf_static_topic for a bag replay: a --*-topic flag, else what the --config
     file names when it is not the node's default (a robot's own topics), else "" (the bag's, see
@@ -679,17 +696,17 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--threads", type=_positive, default=1, help="torch CPU threads")
     e.add_argument("--passes", type=int, default=1, choices=(1, 2, 3),
                    help="network passes per scan, averaged (segmentation.passes: 2 adds the mirror image, 3 also a shifted one)")
-    e.add_argument("--max-beams", type=int, default=0,
+    e.add_argument("--max-beams", type=_setting("segmentation.max_beams", int), default=0,
                    help="most beams the network sees, the rest take their neighbours' labels (segmentation.max_beams; 0 = all)")
-    e.add_argument("--knn", type=int, default=SegmentationConfig().knn,
+    e.add_argument("--knn", type=_setting("segmentation.knn", int), default=SegmentationConfig().knn,
                    help="k-nearest-neighbour vote after the network (segmentation.knn; 0 = off)")
-    e.add_argument("--floor-band", type=float, default=SegmentationConfig().floor_band,
+    e.add_argument("--floor-band", type=_setting("segmentation.floor_band"), default=SegmentationConfig().floor_band,
                    help="m, floor labels standing this far above the floor go to their neighbours' label "
                         "(segmentation.floor_band; 0 = off)")
-    e.add_argument("--object-gap", type=float, default=SegmentationConfig().object_gap,
+    e.add_argument("--object-gap", type=_setting("segmentation.object_gap"), default=SegmentationConfig().object_gap,
                    help="m, desk and chair points this close in neighbouring cells form one object, which takes its "
                         "commonest label (segmentation.object_gap; 0 = off)")
-    e.add_argument("--floor-snap", type=float, default=SegmentationConfig().floor_snap,
+    e.add_argument("--floor-snap", type=_setting("segmentation.floor_snap"), default=SegmentationConfig().floor_snap,
                    help="m, in non-repetitive scans, other, wall, desk and chair points this close to the floor plane "
                         "become floor (segmentation.floor_snap; 0 = off)")
     e.add_argument("--precision", default=SegmentationConfig().precision, choices=CHOICES["segmentation.precision"],
