@@ -252,6 +252,7 @@ class Monitor:
         self._lock = threading.Lock()
         self._pending: deque[_Scan] = deque()
         self._last_scan_stamp: float | None = None
+        self._reset_to: tuple[str, float] | None = None  # the last time reset: (stream, stamp it went back to)
         self._odom_child = ""
         self.sensor_frame = ""  # frame_id of the clouds (the sensor frame)
         self.map_frame = ""  # frame_id of the odometry (the frame poses and planes live in)
@@ -401,7 +402,8 @@ class Monitor:
             self.count("duplicate_poses")
             return False
         if status == "backwards":
-            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}", self.last_pose_received)
+            self._time_reset(f"odometry stamp went backwards to {stamp:.3f}", self.last_pose_received, "odometry",
+                             float(stamp))
         self._resolve_pending()
         return True
 
@@ -434,7 +436,7 @@ class Monitor:
             if scan.stamp == self._last_scan_stamp:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
                 return False
-            self._time_reset(f"scan stamp went backwards to {stamp:.3f}", clock)
+            self._time_reset(f"scan stamp went backwards to {stamp:.3f}", clock, "scans", scan.stamp)
         self._last_scan_stamp = scan.stamp
         self._pending.append(scan)
         while len(self._pending) > MAX_PENDING:
@@ -482,10 +484,15 @@ class Monitor:
         return _Scan(stamp, pts.astype(np.float32, copy=False), extra["labels"], extra["ring"], extra["intensity"],
                      time.perf_counter(), extra["time"], received=received)
 
-    def _time_reset(self, why: str, now: float | None) -> None:
+    def _time_reset(self, why: str, now: float | None, stream: str, stamp: float) -> None:
         """Time jumped back (bag loop, sim time reset): forget waiting scans; the window restarts itself.
-        Failure-check times later than ``now`` (the receive clock went back too) are forgotten."""
-        self.count("time_resets")
+        Failure-check times later than ``now`` (the receive clock went back too) are forgotten. One reset is
+        counted when both streams go back to about the same time (within pose_timeout_s): one loop."""
+        last, self._reset_to = self._reset_to, (stream, stamp)
+        if last is not None and last[0] != stream and abs(stamp - last[1]) <= self.config.window.pose_timeout_s:
+            self._reset_to = None  # the other stream of the same loop
+        else:
+            self.count("time_resets")
         self.last_error = why
         with self._lock:
             if now is not None and self.last_processed is not None and self.last_processed > now:
