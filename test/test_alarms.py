@@ -279,3 +279,7 @@ def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error
     assert row["rpe_estimate"] == pytest.approx(0.5) and row["rpe_estimate_vs_true"] == pytest.approx(0.25)
     assert row["rot_rate_vs_true"] == pytest.approx(0.25) and row["trans_rate_vs_true"] == pytest.approx(0.25)
     assert row["rpe_estimate_vs_trend"] == pytest.approx(0.25)
+    # a translation-only episode: the true rotation is the SLAM's own small error, no rotation ratio is formed
+    (t_only,) = rate_accuracy([window], [{**episode, "rot_rate": 0.0}])
+    assert np.isnan(t_only["rot_rate_vs_true"]) and "rot_rate" not in t_only
+    assert t_only["trans_rate_vs_true"] == pytest.approx(0.25)
