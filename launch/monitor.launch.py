@@ -30,14 +30,15 @@ def _sim_time(context) -> dict:
 def _nodes(context):
     """The monitor node: the parameter file, then the arguments that were given; and the aggregator."""
     topics = {name: LaunchConfiguration(name).perform(context) for name in ("points_topic", "odom_topic")}
-    given = {**{name: value for name, value in topics.items() if value}, **_sim_time(context)}
+    sim_time = _sim_time(context)
+    given = {**{name: value for name, value in topics.items() if value}, **sim_time}
     share = get_package_share_directory("topometric_ros")
     return [Node(package="topometric_ros", executable="topometric_monitor", name="topometric_monitor",
                  namespace=LaunchConfiguration("namespace"), parameters=[LaunchConfiguration("config"), given],
                  output="screen"),
             Node(package="diagnostic_aggregator", executable="aggregator_node", name="analyzers",
                  namespace=LaunchConfiguration("namespace"),
-                 parameters=[os.path.join(share, "config", "analyzers.yaml"), _sim_time(context)],
+                 parameters=[os.path.join(share, "config", "analyzers.yaml"), sim_time],
                  condition=IfCondition(LaunchConfiguration("aggregator")), output="screen")]
 
 

@@ -257,8 +257,7 @@ class MonitorNode(Node):
     def _received(self) -> float | None:
         """The node clock (s) as a message's receive time; None while it reads 0 (use_sim_time before the first
         /clock): a 0 would teach the clock watch an offset of the stamps' whole epoch."""
-        ns = self.get_clock().now().nanoseconds
-        return ns * 1e-9 if ns else None
+        return self._now() or None
 
     def _on_cloud(self, raw: bytes) -> None:
         """A serialized sensor_msgs/PointCloud2 (CDR), read with rosbags (numpy views, no per-field copies)."""

@@ -246,6 +246,11 @@ def clean_windows(records: list[dict], episodes: list[dict], settle_s: float = C
                                           for ep in episodes)]
 
 
+def false_warns(records: list[dict]) -> int:
+    """Windows that alarmed while the SLAM's true drift stayed under the limits (real_drift)."""
+    return sum(r["level"] in ALARM and not real_drift(r) for r in records)
+
+
 def real_drift(record: dict) -> bool:
     """A window in which the SLAM itself truly drifted past the monitor's WARN limits (the bag's ground truth,
     replay's true_*_rate): an alarm there is right, not false, injected episode or not."""
@@ -277,13 +282,14 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
         else:
             hits = [h for h in episode_hits(windows, truth["episodes"], within) if h["covered"]]
             calm = clean_windows(windows, truth["episodes"])
+            calm_false, calm_strict = false_warns(calm), sum(r["level"] in ALARM for r in calm)
             clean["windows"] += len(calm)
-            clean["false_warn_windows"] += sum(r["level"] in ALARM and not real_drift(r) for r in calm)
-            clean["strict_warn_windows"] += sum(r["level"] in ALARM for r in calm)
+            clean["false_warn_windows"] += calm_false
+            clean["strict_warn_windows"] += calm_strict
             clean["minutes"] += len(calm) * _window_s(windows) / 60
             after = [r for r in calm if any(r["start"] >= ep["end"] + CLEAN_AFTER_S for ep in truth["episodes"])]
             clean["after_windows"] += len(after)
-            clean["after_false_warn_windows"] += sum(r["level"] in ALARM and not real_drift(r) for r in after)
+            clean["after_false_warn_windows"] += false_warns(after)
             clean["after_minutes"] += len(after) * _window_s(windows) / 60
             rows.append({"bag": run.name, "mode": sim.drift.mode, "scale": sim.drift.scale, "speed": sim.speed,
                          "estimate": run.estimate, "sensor": sim.sensor,
@@ -293,8 +299,7 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
                          "latencies": [h["latency_windows"] for h in hits],
                          "accuracy": rate_accuracy(windows, truth["episodes"]),
                          "clean_windows": len(calm),
-                         "clean_false_warns": sum(r["level"] in ALARM and not real_drift(r) for r in calm),
-                         "clean_strict_warns": sum(r["level"] in ALARM for r in calm),
+                         "clean_false_warns": calm_false, "clean_strict_warns": calm_strict,
                          "clean_real_drift": sum(real_drift(r) for r in calm),
                          "clean_minutes": len(calm) * _window_s(windows) / 60, "scans_per_s": summary.get("scans_per_s")})
     n_ep = sum(r["episodes"] for r in rows)
