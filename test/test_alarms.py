@@ -5,7 +5,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from topometric_ros.experiments.alarms import SPLITS, episode_hits, plan_bags, reassess, score
+import json
+import re
+
+from topometric_ros.experiments.alarms import SEGMENTATION_LAYOUTS, SPLITS, episode_hits, plan_bags, reassess, score
+from topometric_ros.segmentation.checkpoint import SHIPPED, beside
 from topometric_ros.config import HealthConfig, load_config
 from topometric_ros.monitor import Monitor
 from topometric_ros.pipeline import ProcessedScan, WindowResult
@@ -18,7 +22,7 @@ def test_calibration_and_evaluation_bags_are_disjoint():
     assert len(cal) == len(SPLITS["calibration"]) * (9 + 5) and len(ev) == 9 + 5
     assert {(s.layout_seed, s.seed) for s in cal}.isdisjoint({(s.layout_seed, s.seed) for s in ev})
     assert {s.layout_seed for s in cal}.isdisjoint({s.layout_seed for s in ev})  # different floor plans too
-    assert len({s.layout_seed for s in ev}) == 4 and len({s.layout_seed for s in cal}) == 6
+    assert len({s.layout_seed for s in ev}) == 4 and len({s.layout_seed for s in cal}) == 10
     assert sorted({(s.drift.mode, s.drift.scale) for s in ev if s.drift.mode != "none"}) == sorted(
         (m, k) for m in ("r", "t", "rt") for k in (1.0, 1.5, 2.0))
     default = [r.sim for r in plan_bags(scenes, 400, 5, 750, split="evaluation")]  # `topometric alarms` defaults
@@ -28,6 +32,16 @@ def test_calibration_and_evaluation_bags_are_disjoint():
         plan_bags(scenes, 100, 1, 100, split="train")
     first = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="calibration", groups=1)]  # a shorter calibration
     assert first == cal[:len(first)] and {s.layout_seed for s in first} == set(SPLITS["calibration"][0][0])
+
+
+def test_the_evaluation_floor_plans_are_new_to_the_shipped_network():
+    """No evaluation bag's floor plan is one the shipped weights trained on (their model card names the
+    training folders, data/gpu_train/<layout>/...), nor any plan the network's data may come from."""
+    card = json.loads(beside(SHIPPED, "model_card.json").read_text())
+    trained = {int(x) for x in re.findall(r"gpu_train/(\d+)/", json.dumps(card["training"]))}
+    assert trained and trained <= SEGMENTATION_LAYOUTS  # the card's folders are among the plans set aside
+    evaluation = {layout for layouts, _ in SPLITS["evaluation"] for layout in layouts}
+    assert evaluation.isdisjoint(SEGMENTATION_LAYOUTS)
 
 
 def records(levels, t0=0.0, dt=1.0):
