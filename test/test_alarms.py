@@ -132,13 +132,14 @@ def test_score_counts_false_warns_per_ten_minutes_and_detections():
 
     free = Run(SimConfig(scene="garage", frames=10))
     drift = Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("r", 1.0)))
-    recs = records(["OK"] * 50 + ["WARN"] + ["OK"] * 49)
+    recs = records(["OK"] * 50 + ["WARN"] + ["OK"] * 49, dt=3.0)  # 100 windows of 3 s: 5 min
     eps = records(["OK", "OK", "ERROR", "OK"])
     for r, rate in zip(eps, (0.1, 2.1, 1.9, 0.2)):  # 2 °/s injected: read 2.1 and 1.9 inside the episode
         r.update(rot_rate=rate, trans_rate=0.0)
-    table = score([(free, recs, {"bag_s": 300.0}, None),
+    table = score([(free, recs, {"bag_s": 304.0}, None),  # the bag runs on past its last window
                    (drift, eps, {"bag_s": 4.0}, {"episodes": [{"start": 0.9, "end": 3.0, "rot_rate": np.radians(2.0),
                                                                "trans_rate": 0.0}]})], within=2)
+    assert table["drift_free"]["minutes"] == pytest.approx(5.0)  # the windows' time, not the bag's length
     assert table["false_warns_per_10min"] == pytest.approx(2.0)  # 1 false WARN in 5 min
     assert table["detected"] == table["episodes"] == 1
     (cell,) = table["cells"]
@@ -220,7 +221,7 @@ def test_an_alarm_where_the_slam_truly_drifted_is_confirmed_not_false():
     from topometric_ros.experiments.alarms import Run, real_drift
     from topometric_ros.sim.writer import SimConfig
 
-    recs = records(["OK"] * 98 + ["WARN", "ERROR"])
+    recs = records(["OK"] * 98 + ["WARN", "ERROR"], dt=6.0)  # 10 min
     for r in recs:
         r.update(rot_rate_warn_at=0.6, trans_rate_warn_at=0.05, true_rot_rate=0.1, true_trans_rate=0.01)
     recs[98]["true_trans_rate"] = 0.3  # the SLAM slid: the WARN is right

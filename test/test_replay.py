@@ -383,6 +383,22 @@ def test_inspect_gives_a_cloud_that_cannot_be_segmented_its_row_and_goes_on(offi
     assert "label" in rows[2]["error"] and all(int(r["planes"]) > 0 for i, r in enumerate(rows) if i != 2)
 
 
+def test_inspect_names_the_settings_it_does_not_use(office_bag, tmp_path, capsys):
+    """window, health and deskew settings do nothing without odometry and windows: inspect says so; the
+    per-scan settings it reads (planes, window.voxel_size) pass without a note."""
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    args = ["inspect", str(bag_path), "--out", str(tmp_path / "out"), "--no-plot", "--quiet", "--limit", "1",
+            "--segmentation", "labels", "--set", "planes.min_points=40", "--set", "window.voxel_size=0.05"]
+    assert cli.main(args) == 0
+    assert "no effect" not in capsys.readouterr().err
+    assert cli.main(args + ["--set", "window.size=10", "--set", "health.warn_sigma=4", "--set",
+                            "sensor.deskew=off"]) == 0
+    err = capsys.readouterr().err
+    assert "window.size, health.warn_sigma, sensor.deskew has no effect here" in err, err
+
+
 def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):
     """Zero scans processed: exit 1, the reason, the bag's topics with types and counts, and the mode that ran."""
     bag_path, _ = office_bag

@@ -229,6 +229,10 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     from .storage import ReadLog
 
     config = _monitor_config(args)
+    unused = _unused_by_inspect(args)
+    if unused:
+        print(f"note: inspect runs the per-scan stages only (no odometry, no windows): {', '.join(unused)} "
+              "has no effect here", file=sys.stderr)
     segmenter = load_segmenter(config) if config.segmentation.mode == "network" else None
     log = ReadLog()
     rows = inspect_bag(args.bag, args.out, config, _topics(args)["points_topic"], args.every, args.limit, segmenter,
@@ -243,6 +247,16 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(f"the first {len(rows)} clouds (every {args.every}); --limit 0 inspects them all")
     print(f"wrote {Path(args.out) / 'scans.csv'}" + ("" if args.no_plot else " and one scan_NNNN.png per scan"))
     return 1 if not rows or all("error" in r for r in rows) else 0
+
+
+#: Settings inspect's per-scan stages read (cloud, grid, segmentation, planes): a section, or one leaf.
+INSPECT_SETTINGS = ("sensor.", "segmentation.", "planes.", "window.voxel_size")
+
+
+def _unused_by_inspect(args: argparse.Namespace) -> list[str]:
+    """The --set keys inspect does not use (window, health, metrics settings, deskew: no odometry)."""
+    keys = [item.partition("=")[0].strip() for item in getattr(args, "set", None) or []]
+    return [k for k in keys if k == "sensor.deskew" or not k.startswith(INSPECT_SETTINGS)]
 
 
 def _alarms_mode_options(args: argparse.Namespace) -> str:
