@@ -1,12 +1,11 @@
 """alarms.py: disjoint calibration / evaluation splits, episode scoring, and offline re-assessment equal to
 what the Monitor itself concludes."""
+import json
+import re
 from dataclasses import replace
 
 import numpy as np
 import pytest
-
-import json
-import re
 
 from topometric_ros.experiments.alarms import SEGMENTATION_LAYOUTS, SPLITS, episode_hits, plan_bags, reassess, score
 from topometric_ros.segmentation.checkpoint import SHIPPED, beside

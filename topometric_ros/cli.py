@@ -107,11 +107,9 @@ def _topics(args: argparse.Namespace) -> dict[str, str]:
     return out
 
 
-def _monitor_config(args: argparse.Namespace):
-    """Config from --config, then --set KEY=VALUE pairs, then the dedicated flags."""
+def _set_pairs(args: argparse.Namespace) -> dict:
+    """The --set KEY=VALUE pairs, values read as YAML."""
     import yaml
-
-    from .config import load_config
 
     over = {}
     for item in getattr(args, "set", None) or []:
@@ -119,6 +117,14 @@ def _monitor_config(args: argparse.Namespace):
         if not eq:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
         over[key.strip()] = yaml.safe_load(value)
+    return over
+
+
+def _monitor_config(args: argparse.Namespace):
+    """Config from --config, then --set KEY=VALUE pairs, then the dedicated flags."""
+    from .config import load_config
+
+    over = _set_pairs(args)
     if getattr(args, "window_size", None) is not None:
         over["window.size"] = args.window_size
     if getattr(args, "segmentation", None):
@@ -255,8 +261,7 @@ INSPECT_SETTINGS = ("sensor.", "segmentation.", "planes.", "window.voxel_size")
 
 def _unused_by_inspect(args: argparse.Namespace) -> list[str]:
     """The --set keys inspect does not use (window, health, metrics settings, deskew: no odometry)."""
-    keys = [item.partition("=")[0].strip() for item in getattr(args, "set", None) or []]
-    return [k for k in keys if k == "sensor.deskew" or not k.startswith(INSPECT_SETTINGS)]
+    return [k for k in _set_pairs(args) if k == "sensor.deskew" or not k.startswith(INSPECT_SETTINGS)]
 
 
 def _alarms_mode_options(args: argparse.Namespace) -> str:

@@ -273,11 +273,11 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
     clean = {"windows": 0, "false_warn_windows": 0, "strict_warn_windows": 0, "minutes": 0.0,
              "after_windows": 0, "after_false_warn_windows": 0, "after_minutes": 0.0}  # after: >= CLEAN_AFTER_S past
     for run, windows, summary, truth in runs:
-        sim = run.sim
+        sim, window_s = run.sim, _window_s(windows)
         if sim.drift.mode == "none":
             alarms = [r for r in windows if r["level"] in ALARM]
             false = [r for r in alarms if not real_drift(r)]
-            minutes = len(windows) * _window_s(windows) / 60  # the windows' time (the bag runs on past the last)
+            minutes = len(windows) * window_s / 60  # the windows' time (the bag runs on past the last)
             free["windows"] += len(windows)
             free["false_warn_windows"] += len(false)
             free["strict_warn_windows"] += len(alarms)
@@ -293,11 +293,11 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
             clean["windows"] += len(calm)
             clean["false_warn_windows"] += calm_false
             clean["strict_warn_windows"] += calm_strict
-            clean["minutes"] += len(calm) * _window_s(windows) / 60
+            clean["minutes"] += len(calm) * window_s / 60
             after = [r for r in calm if any(r["start"] >= ep["end"] + CLEAN_AFTER_S for ep in truth["episodes"])]
             clean["after_windows"] += len(after)
             clean["after_false_warn_windows"] += false_warns(after)
-            clean["after_minutes"] += len(after) * _window_s(windows) / 60
+            clean["after_minutes"] += len(after) * window_s / 60
             rows.append({"bag": run.name, "mode": sim.drift.mode, "scale": sim.drift.scale, "speed": sim.speed,
                          "estimate": run.estimate, "sensor": sim.sensor,
                          "episodes": len(hits), "detected": sum(h["detected"] for h in hits),
@@ -308,7 +308,7 @@ def score(runs: list[tuple[Run, list[dict], dict, dict | None]], within: int) ->
                          "clean_windows": len(calm),
                          "clean_false_warns": calm_false, "clean_strict_warns": calm_strict,
                          "clean_real_drift": sum(real_drift(r) for r in calm),
-                         "clean_minutes": len(calm) * _window_s(windows) / 60, "scans_per_s": summary.get("scans_per_s")})
+                         "clean_minutes": len(calm) * window_s / 60, "scans_per_s": summary.get("scans_per_s")})
     n_ep = sum(r["episodes"] for r in rows)
     n_hit = sum(r["detected"] for r in rows)
     per_10min = 10 * free["false_warn_windows"] / free["minutes"] if free["minutes"] else float("nan")
