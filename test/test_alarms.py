@@ -33,6 +33,23 @@ def test_calibration_and_evaluation_bags_are_disjoint():
     assert first == cal[:len(first)] and {s.layout_seed for s in first} == set(SPLITS["calibration"][0][0])
 
 
+def test_a_kiss_voxel_other_than_the_default_gets_replays_of_its_own():
+    """Runs of another KISS-ICP voxel size are named apart (their replays and KISS-ICP caches do not mix with
+    the default's), on the same bags; the bag's own odometry is not renamed; a negative size is refused."""
+    scenes = ["garage"]
+    default = plan_bags(scenes, 100, 1, 200, estimates=("sim", "kiss"))
+    fine = plan_bags(scenes, 100, 1, 200, estimates=("sim", "kiss"), kiss_voxel=0.1)
+    own = plan_bags(scenes, 100, 1, 200, estimates=("kiss",), kiss_voxel=0)
+    assert [r.sim for r in default] == [r.sim for r in fine]
+    names = {r.estimate: [] for r in default}
+    for a, b in zip(default, fine):
+        names[a.estimate].append((a.name, b.name))
+    assert all(a == b for a, b in names["sim"]) and all(b == a + "0.1" for a, b in names["kiss"])
+    assert all(r.name.endswith("_kiss0") for r in own)
+    with pytest.raises(ValueError, match="kiss_voxel"):
+        plan_bags(scenes, 100, 1, 200, estimates=("kiss",), kiss_voxel=-0.1)
+
+
 def test_the_evaluation_floor_plans_are_new_to_the_shipped_network():
     """No evaluation bag's floor plan is one the shipped weights trained on (their model card names the
     training folders, data/gpu_train/<layout>/...), nor any plan the network's data may come from."""

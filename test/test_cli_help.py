@@ -174,11 +174,12 @@ def test_plane_quality_takes_the_detector_of_its_config_unless_named(tmp_path):
 
 
 def test_alarms_options_of_another_mode_are_refused_not_dropped(tmp_path):
-    """--grid without --calibrate-rates, --margin without --calibrate, a calibration on the evaluation split, or
-    both calibrations at once: exit 2 saying why (each was accepted and silently dropped)."""
+    """--grid without --calibrate-rates, --margin without --calibrate, --kiss-voxel without KISS-ICP, a calibration
+    on the evaluation split, or both calibrations at once: exit 2 saying why (each was accepted and silently dropped)."""
     cases = ((["--grid", "rate_sigma=0,1"], "--grid sweeps settings for --calibrate-rates only"),
              (["--calibrate-rates", "--margin", "1"], "--margin is --calibrate's"),
              (["--calibrate", "--split", "evaluation"], "calibration runs on the calibration split only"),
+             (["--kiss-voxel", "0.1"], "--kiss-voxel is KISS-ICP's"),
              (["--calibrate", "--calibrate-rates"], "not allowed with argument"))
     for extra, words in cases:
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "alarms", "--out", str(tmp_path / "x"), *extra],

@@ -34,3 +34,21 @@ def test_kiss_poses_follow_the_truth_and_replay_beside_the_bag(tmp_path):
     # the monitor's drift rates follow the true drift of KISS's poses (the ground truth in the bag)
     w = [x for x in res.windows if np.isfinite(x["rot_rate"])]
     assert w and all(abs(x["trans_rate"] - x["true_trans_rate"]) < 0.05 + 0.3 * x["true_trans_rate"] for x in w)
+
+
+def test_the_kiss_cache_is_kept_per_voxel_size(tmp_path):
+    """cached_kiss registers a bag once per voxel size: the same size reads the cache back (the same poses,
+    the cache file untouched), another size registers again and says so in its info."""
+    from topometric_ros.experiments.odometry import VOXEL_SIZE, cached_kiss
+    from topometric_ros.sim.writer import SimConfig, simulate
+
+    path = tmp_path / "bag"
+    simulate(SimConfig(scene="office1", frames=12, rate=10.0, seed=3), path, progress=False)
+    cache = tmp_path / "kiss" / "bag.npz"
+    _, poses, _, info = cached_kiss(path, cache, progress=False)
+    written = cache.stat().st_mtime_ns
+    _, again, _, info_again = cached_kiss(path, cache, progress=False)
+    assert cache.stat().st_mtime_ns == written and np.array_equal(poses, again) and info_again == info
+    assert info["voxel_size"] == VOXEL_SIZE
+    _, _, _, coarse = cached_kiss(path, cache, voxel_size=0.5, progress=False)
+    assert coarse["voxel_size"] == 0.5 and cache.stat().st_mtime_ns != written

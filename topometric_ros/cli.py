@@ -273,6 +273,8 @@ def _alarms_mode_options(args: argparse.Namespace) -> str:
         problems.append("--grid sweeps settings for --calibrate-rates only")
     if args.margin is not None and not args.calibrate:
         problems.append("--margin is --calibrate's")
+    if args.kiss_voxel is not None and "kiss" not in args.estimates:
+        problems.append("--kiss-voxel is KISS-ICP's (--estimates kiss)")
     if calibrating and args.split == "evaluation":
         problems.append("calibration runs on the calibration split only (the evaluation split is never tuned on)")
     return "; ".join(problems)
@@ -289,6 +291,8 @@ def cmd_alarms(args: argparse.Namespace) -> int:
     plan = {"rate": args.rate, "speeds": args.speeds, "estimates": args.estimates, "odometry": args.odometry,
             "scales": args.scales or SCALES, "engine": args.engine, "workers": args.workers,
             "address": args.address or None}
+    if args.kiss_voxel is not None:
+        plan["kiss_voxel"] = args.kiss_voxel
     if args.sensors:
         plan["sensors"] = args.sensors
     if args.groups:
@@ -817,6 +821,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--estimates", type=_words, default=("sim",),
                    help="whose poses the monitor judges: sim (the bag's odometry, --odometry's error) and/or kiss "
                         "(KISS-ICP on the bag's clouds); drift episodes go on top")
+    a.add_argument("--kiss-voxel", type=_non_negative, default=None, metavar="M",
+                   help="KISS-ICP's voxel size, m (default 0.25; 0 = its own rule, max range / 100: about 0.07 m "
+                        "in an office, 5-20x slower there)")
     a.add_argument("--odometry", default="ideal", choices=("ideal", "lo"),
                    help="the simulated odometry's everyday error under the episodes")
     a.add_argument("--rate", type=_positive_number, default=5.0, help="scans per second of the bags (10 = every sweep)")

@@ -32,6 +32,7 @@ from ..sim.drift import DriftSpec
 from ..audit import network_digest
 from ..bag import load_truth
 from ..sim.writer import SIM_VERSION, SimConfig, bag_identity, simulate
+from .odometry import VOXEL_SIZE
 
 #: split -> groups of (floor-plan seeds the bags cycle through, first trajectory seed). Disjoint from each
 #: other and from the segmentation splits (layout 0 train/test seeds 0../1000.., unseen layout 7 seeds 0..).
@@ -75,24 +76,34 @@ class Run:
 
     sim: SimConfig
     estimate: str = "sim"
+    kiss_voxel: float = VOXEL_SIZE  # m, KISS-ICP's voxel size (estimate kiss; 0: its own rule, max range / 100)
 
     @property
     def name(self) -> str:
-        return _name(self.sim) + ("" if self.estimate == "sim" else f"_{self.estimate}")
+        return _name(self.sim) + self.estimate_tag
+
+    @property
+    def estimate_tag(self) -> str:
+        """'' (the bag's odometry), '_kiss', or '_kiss<voxel m>' for a voxel size other than VOXEL_SIZE."""
+        if self.estimate == "sim":
+            return ""
+        return f"_{self.estimate}" + ("" if self.kiss_voxel == VOXEL_SIZE else f"{self.kiss_voxel:g}")
 
 
 def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, rate: float = 5.0,
               split: str = "evaluation", speeds=(1.2,), estimates=("sim",), odometry: str = "ideal",
-              scales=SCALES, sensors=None, groups: int | None = None) -> list[Run]:
+              scales=SCALES, sensors=None, groups: int | None = None, kiss_voxel: float = VOXEL_SIZE) -> list[Run]:
     """The runs of ``split``: per group of the split (its first ``groups``, or all), speed and estimate, one bag
     per (mode, scale), then ``free_bags`` drift-free bags; scenes cycle (those of SPEED_SCENES a speed fits in,
     among ``scenes``), and so do the split's sensors (SPLIT_SENSORS, or ``sensors``). The estimates of one bag
-    share it."""
+    share it. kiss_voxel: KISS-ICP's voxel size, m (0: its own rule)."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
     bad = [e for e in estimates if e not in ESTIMATES]
     if bad or not estimates:
         raise ValueError(f"estimates must be among {', '.join(ESTIMATES)}, got {', '.join(bad) or 'none'}")
+    if not (np.isfinite(kiss_voxel) and kiss_voxel >= 0):
+        raise ValueError(f"kiss_voxel must be >= 0 (0: KISS-ICP's own rule), got {kiss_voxel}")
     for name, values in (("speeds", speeds), ("scales", scales), ("rate", (rate,))):
         if not len(values) or not all(np.isfinite(v) and v > 0 for v in values):
             raise ValueError(f"{name} must be > 0, got {', '.join(map(str, values)) or 'none'}")
@@ -106,7 +117,7 @@ def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, 
                 sim = SimConfig(scene=fits[k % len(fits)], layout_seed=layouts[k % len(layouts)],
                                 seed=seed0 + 100 * i + k, frames=free_frames if drift.mode == "none" else frames,
                                 rate=rate, speed=speed, drift=drift, odometry=odometry, sensor=sensors[k % len(sensors)])
-                runs += [Run(sim, e) for e in estimates]
+                runs += [Run(sim, e, kiss_voxel) for e in estimates]
     return runs
 
 
@@ -213,7 +224,9 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
             return reassess(doc["windows"], config.health), doc["summary"]
     options = ReplayOptions(progress=progress, plot=True)
     if run.estimate == "kiss":
-        options = replace(options, odom_topic=KISS_TOPIC, beside=(_kiss_sidecar(path, out / "kiss", progress),))
+        side = _kiss_sidecar(path, out / "kiss", run.kiss_voxel, path.name + run.estimate_tag.removeprefix("_kiss"),
+                             progress)
+        options = replace(options, odom_topic=KISS_TOPIC, beside=(side,))
     res = replay(path, target, config, options)
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
@@ -228,18 +241,19 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
 KISS_TOPIC = "/odom_kiss"
 
 
-def _kiss_sidecar(path: Path, folder: Path, progress: bool) -> Path:
-    """A bag beside ``path`` with KISS-ICP's poses of its clouds as odometry (experiments/odometry.py, cached),
-    the bag's drift episodes (truth.json) injected on top exactly as the simulator injects them."""
+def _kiss_sidecar(path: Path, folder: Path, voxel: float, name: str, progress: bool) -> Path:
+    """A bag beside ``path`` with KISS-ICP's poses of its clouds (voxel size ``voxel`` m) as odometry
+    (experiments/odometry.py, cached in ``folder`` as ``name``), the bag's drift episodes (truth.json) injected on
+    top exactly as the simulator injects them."""
     from ..sim.drift import Episode, estimated_poses
     from .odometry import cached_kiss, write_odometry_bag
 
     truth = load_truth(path)
-    stamps, poses, frame, _ = cached_kiss(path, folder / f"{path.name}.npz", progress=progress)
+    stamps, poses, frame, _ = cached_kiss(path, folder / f"{name}.npz", voxel_size=voxel, progress=progress)
     episodes = [Episode(**e) for e in truth["episodes"]]
     drift = DriftSpec(**truth["config"]["drift"])
     est = estimated_poses(stamps, poses, drift, episodes, np.random.default_rng(0)) if episodes else poses
-    side = folder / f"{path.name}_odom"
+    side = folder / f"{name}_odom"
     if side.exists():
         shutil.rmtree(side)
     return write_odometry_bag(side, stamps, est, frame, KISS_TOPIC)

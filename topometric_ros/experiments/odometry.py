@@ -76,21 +76,22 @@ def write_odometry_bag(out: str | Path, stamps: np.ndarray, poses: np.ndarray, c
     return out
 
 
-def cached_kiss(path: str | Path, cache: str | Path, topic: str = "/points",
+def cached_kiss(path: str | Path, cache: str | Path, topic: str = "/points", voxel_size: float = VOXEL_SIZE,
                 progress: bool = True) -> tuple[np.ndarray, np.ndarray, str, dict]:
     """kiss_odometry of a bag, computed once: kept as ``cache`` (.npz + .json) keyed by the bag's truth.json
-    (simulated bags) so a changed bag is registered again."""
+    (simulated bags) and the voxel_size asked for, so a changed bag or setting is registered again."""
     cache = Path(cache)
     key = json.dumps(bag.load_truth(path) or str(path), sort_keys=True)
     meta = cache.with_suffix(".json")
-    if cache.with_suffix(".npz").exists() and meta.exists() and json.loads(meta.read_text()).get("key") == key:
-        z = np.load(cache.with_suffix(".npz"))
+    if cache.with_suffix(".npz").exists() and meta.exists():
         doc = json.loads(meta.read_text())
-        return z["stamps"], z["poses"], doc["frame_id"], doc["info"]
-    stamps, poses, frame_id, info = kiss_odometry(path, topic, progress=progress)
+        if doc.get("key") == key and doc.get("voxel_setting", VOXEL_SIZE) == voxel_size:  # older caches: VOXEL_SIZE
+            z = np.load(cache.with_suffix(".npz"))
+            return z["stamps"], z["poses"], doc["frame_id"], doc["info"]
+    stamps, poses, frame_id, info = kiss_odometry(path, topic, voxel_size, progress=progress)
     cache.parent.mkdir(parents=True, exist_ok=True)
     with written_whole(cache.with_suffix(".npz")) as tmp:
         np.savez(tmp, stamps=stamps, poses=poses)
     with written_whole(meta) as tmp:  # written last: the cache counts only when both are whole
-        tmp.write_text(json.dumps({"key": key, "frame_id": frame_id, "info": info}))
+        tmp.write_text(json.dumps({"key": key, "voxel_setting": voxel_size, "frame_id": frame_id, "info": info}))
     return stamps, poses, frame_id, info
