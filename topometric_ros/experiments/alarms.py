@@ -224,8 +224,8 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
             return reassess(doc["windows"], config.health), doc["summary"]
     options = ReplayOptions(progress=progress, plot=True)
     if run.estimate == "kiss":
-        side = _kiss_sidecar(path, out / "kiss", run.kiss_voxel, path.name + run.estimate_tag.removeprefix("_kiss"),
-                             progress)
+        voxel = "" if run.kiss_voxel == VOXEL_SIZE else f"_voxel{run.kiss_voxel:g}"
+        side = _kiss_sidecar(path, out / "kiss", run.kiss_voxel, path.name + voxel, progress)
         options = replace(options, odom_topic=KISS_TOPIC, beside=(side,))
     res = replay(path, target, config, options)
     if res.summary["error"]:
