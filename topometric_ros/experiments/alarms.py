@@ -85,9 +85,12 @@ class Run:
     @property
     def estimate_tag(self) -> str:
         """'' (the bag's odometry), '_kiss', or '_kiss<voxel m>' for a voxel size other than VOXEL_SIZE."""
-        if self.estimate == "sim":
-            return ""
-        return f"_{self.estimate}" + ("" if self.kiss_voxel == VOXEL_SIZE else f"{self.kiss_voxel:g}")
+        return "" if self.estimate == "sim" else f"_{self.estimate}{self.voxel_tag}"
+
+    @property
+    def voxel_tag(self) -> str:
+        """'' for KISS-ICP's default voxel size (VOXEL_SIZE), else the size in m ('0.1'; '0': its own rule)."""
+        return "" if self.kiss_voxel == VOXEL_SIZE else f"{self.kiss_voxel:g}"
 
 
 def plan_bags(scenes: list[str], frames: int, free_bags: int, free_frames: int, rate: float = 5.0,
@@ -224,9 +227,7 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
             return reassess(doc["windows"], config.health), doc["summary"]
     options = ReplayOptions(progress=progress, plot=True)
     if run.estimate == "kiss":
-        voxel = "" if run.kiss_voxel == VOXEL_SIZE else f"_voxel{run.kiss_voxel:g}"
-        side = _kiss_sidecar(path, out / "kiss", run.kiss_voxel, path.name + voxel, progress)
-        options = replace(options, odom_topic=KISS_TOPIC, beside=(side,))
+        options = replace(options, odom_topic=KISS_TOPIC, beside=(_kiss_sidecar(path, out / "kiss", run, progress),))
     res = replay(path, target, config, options)
     if res.summary["error"]:
         raise RuntimeError(f"replay of {path} failed: {res.summary['error']}")
@@ -241,15 +242,16 @@ def replay_windows(run: Run, out: Path, config: Config, progress: bool) -> tuple
 KISS_TOPIC = "/odom_kiss"
 
 
-def _kiss_sidecar(path: Path, folder: Path, voxel: float, name: str, progress: bool) -> Path:
-    """A bag beside ``path`` with KISS-ICP's poses of its clouds (voxel size ``voxel`` m) as odometry
-    (experiments/odometry.py, cached in ``folder`` as ``name``), the bag's drift episodes (truth.json) injected on
-    top exactly as the simulator injects them."""
+def _kiss_sidecar(path: Path, folder: Path, run: Run, progress: bool) -> Path:
+    """A bag beside ``path`` with KISS-ICP's poses of its clouds (voxel size run.kiss_voxel) as odometry
+    (experiments/odometry.py, cached in ``folder`` as <bag>, or <bag>_voxel<m> for another size), the bag's
+    drift episodes (truth.json) injected on top exactly as the simulator injects them."""
     from ..sim.drift import Episode, estimated_poses
     from .odometry import cached_kiss, write_odometry_bag
 
+    name = path.name + (f"_voxel{run.voxel_tag}" if run.voxel_tag else "")
     truth = load_truth(path)
-    stamps, poses, frame, _ = cached_kiss(path, folder / f"{name}.npz", voxel_size=voxel, progress=progress)
+    stamps, poses, frame, _ = cached_kiss(path, folder / f"{name}.npz", voxel_size=run.kiss_voxel, progress=progress)
     episodes = [Episode(**e) for e in truth["episodes"]]
     drift = DriftSpec(**truth["config"]["drift"])
     est = estimated_poses(stamps, poses, drift, episodes, np.random.default_rng(0)) if episodes else poses
