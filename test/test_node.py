@@ -456,12 +456,19 @@ class Feeder:
             time.sleep(0.05)
         assert matched(), "the node did not subscribe to /points and /odom"
 
-    def wait_tf_static(self, listener: Listener, node: Proc, timeout=10.0):
-        """Until the node says its extrinsic comes from our /tf_static (it is latched, but DDS may deliver it
-        after /points and /odom matched)."""
-        assert listener.wait_for("/diagnostics", lambda a: any(
-            s.name == CONSISTENCY and values(s).get("extrinsic") == "tf_static" for s in a.status), timeout, node), \
-            "the node never took the extrinsic from /tf_static"
+    def wait_tf_static(self, listener: Listener, node: Proc, points, pose, labels=None, timeout=20.0):
+        """Scans (``points`` at ``pose``) until the node says its extrinsic comes from our /tf_static. The node
+        links the frames only once a scan has told it the cloud's frame, and a scan sent right after the match
+        can still be lost (best effort; the node's reader may not know our writer yet), so one is sent each
+        second; /tf_static is latched but may arrive after /points and /odom matched."""
+        end = time.monotonic() + timeout
+        linked = lambda a: any(s.name == CONSISTENCY and values(s).get("extrinsic") == "tf_static"  # noqa: E731
+                               for s in a.status)
+        while time.monotonic() < end:
+            self.scan(points, pose, labels)
+            if listener.wait_for("/diagnostics", linked, 1.0, node):
+                return
+        raise AssertionError(f"the node never took the extrinsic from /tf_static:\n{node.log()[-2000:]}")
 
     def scan(self, points, pose, labels=None, now=None):
         """Odometry just before and after ``now`` (s, wall), then the cloud stamped ``now``."""
@@ -504,8 +511,7 @@ def test_markers_have_the_true_plane_extents_in_the_map_frame(ros_env, tmp_path)
         feeder.wait_matched()
         pts, labels = wall_patch()
         pose = yaw_pose(90.0, (10.0, 5.0, 0.0))
-        feeder.scan(pts, pose, labels)  # the node learns the cloud and odometry frames, then links them by /tf_static
-        feeder.wait_tf_static(listener, node)
+        feeder.wait_tf_static(listener, node, pts, pose, labels)  # the node learns the frames, links them by /tf_static
         t0 = time.time()
         got = None
         for _ in range(30):  # the markers of a window whose scans all came after that
