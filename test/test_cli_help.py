@@ -37,6 +37,17 @@ def test_every_option_of_every_subcommand_shows_its_default(monkeypatch):
     assert "(default: labels, unless --config or --set segmentation.mode says otherwise)" in demo  # the demo's
 
 
+def test_alarms_kiss_voxel_help_states_the_harness_default(monkeypatch):
+    """--kiss-voxel's default is None (the parser does not load KISS-ICP's module); its help names the size
+    that None means, odometry.VOXEL_SIZE, and must follow it."""
+    from topometric_ros.cli import build_parser
+    from topometric_ros.experiments.odometry import VOXEL_SIZE
+
+    monkeypatch.setenv("COLUMNS", "300")
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert f"(default {VOXEL_SIZE:g}; 0 = its own rule" in " ".join(sub.choices["alarms"].format_help().split())
+
+
 def test_alarms_groups_refuses_a_negative_count_with_a_clear_error():
     from topometric_ros.cli import build_parser
 
