@@ -33,6 +33,7 @@ setup(
         "onnx>=1.17,<2",  # segmentation: in-memory export of the checked weights (torch.onnx needs it)
         "onnxruntime>=1.20,<2",  # segmentation: default CPU backend (eager PyTorch is the fallback)
         "ray>=2.40,<3",  # topometric audit / evaluate / alarms: tasks on a local Ray or a cluster (engine.py)
+        "networkx>=3.0",  # the MOM baseline's cliques of mutually orthogonal planes (metrics/mom.py)
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-timeout>=2", "hypothesis>=6", "mcap-ros2-support>=0.5",

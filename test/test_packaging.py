@@ -18,7 +18,7 @@ ROSDEP = {"numpy": "python3-numpy", "scipy": "python3-scipy", "numba": "python3-
           "open3d-cpu": "python3-open3d-pip", "rosbags": "python3-rosbags-pip", "torch": "python3-torch",
           "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "pyyaml": "python3-yaml", "mcap": None,
           "onnx": None, "onnxruntime": "python3-onnxruntime-pip",
-          "ray": None}
+          "ray": None, "networkx": "python3-networkx"}
 TEST_ROSDEP = {"pytest": "python3-pytest", "pytest-timeout": "python3-pytest-timeout",
                "hypothesis": "python3-hypothesis", "mcap-ros2-support": None, "evo": None,
                "kiss-icp": None}
@@ -50,6 +50,21 @@ def test_every_dependency_has_its_rosdep_key_or_a_pip_line():
             assert (key in declared) if key else (name in pip_only), (name, key)
     for key in ("rclpy", "diagnostic_updater", "diagnostic_aggregator", "launch_ros", "tf2_msgs", "nav_msgs"):
         assert key in exec_deps
+
+
+def test_the_readme_says_what_every_dependency_is_for():
+    """Every setup.py requirement (runtime and test) and every package.xml dependency is named in the README's
+    dependency section."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("## Dependencies and what each is for", 1)[1].split("\n## ", 1)[0]
+    words = set(re.findall(r"[A-Za-z0-9_.+-]+", section.replace("/", " ")))
+    runtime, test = _setup_requirements()
+    xml = ET.parse(ROOT / "package.xml").getroot()
+    ros = {e.text for e in xml.findall("exec_depend") if not e.text.startswith(("python3-", "lib"))}
+    message_packages = {k for k in ros if k.endswith(("_msgs", "_interfaces"))}
+    missing = sorted(n for n in set(runtime + test) | (ros - message_packages) - {"ament_index_python"}
+                     if n not in words)
+    assert not missing, f"README's dependency section does not name {missing}"
 
 
 def _workflow() -> dict:
