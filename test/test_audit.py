@@ -70,7 +70,9 @@ def test_ray_audit_equals_single_replays_and_names_the_corrupt_bag(fleet, tmp_pa
     doc = json.loads((out / "fleet.json").read_text())
     assert doc["failed"] == [{"bag": "night_corrupt", "path": str(fleet / "night_corrupt"),
                               "reason": doc["failed"][0]["reason"]}]
-    assert "PointCloud2" in doc["failed"][0]["reason"] and "damaged bag" in doc["failed"][0]["reason"]
+    assert doc["failed"][0]["reason"].startswith(f"/points cannot be read from {fleet / 'night_corrupt'}: its storage "
+                                                 "is damaged (")  # not "no PointCloud2 topic": metadata.yaml lists it
+    assert "damaged bag" in doc["failed"][0]["reason"] and "(sensor_msgs/msg/PointCloud2, 15)" in doc["failed"][0]["reason"]
     rows = {r["bag"]: r for r in doc["bags"]}
     drift = rows["night_1"]
     assert drift["status"] == "ok" and drift["scans"] == 15 and drift["windows"] == 3
@@ -134,8 +136,13 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
         find_bags([str(fleet / "night_0" / "truth.json")])
     replayed = tmp_path / "replayed"  # a replay's reports (diagnostics.mcap beside windows.json) are no bag either
     replay(bags[0], replayed, config, ReplayOptions(progress=False, plot=False))
-    with pytest.raises(FileNotFoundError, match="no rosbag2 bag under"):
+    with pytest.raises(FileNotFoundError, match="holds a replay's or an audit's reports"):
         find_bags([str(replayed)])
+    linked = tmp_path / "linked"  # bags linked into a folder are found, a link back up is walked once
+    linked.mkdir()
+    (linked / "a").symlink_to(bags[1], target_is_directory=True)
+    (linked / "loop").symlink_to(linked, target_is_directory=True)
+    assert find_bags([str(linked)]) == [linked / "a"]
     assert (first.summary["ran"], first.summary["done"], first.summary["failed"]) == (5, 4, 1)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")}
     again = audit(bags, tmp_path, config, engine="local", progress=False)

@@ -38,6 +38,23 @@ def test_in_range_values_and_choices():
         parameters.check("odom_qos", "best_effort")
 
 
+@pytest.mark.parametrize("value, words", [
+    (["a", "b"], "must be 7 finite numbers"),
+    ([1, 2], "must be 7 finite numbers"),
+    ([0, 0, 0, 0, 0, 0, float("nan")], "must be 7 finite numbers"),
+    ([0, 0, 0, 0, 0, 0, True], "must be 7 finite numbers"),
+    ([0, 0, 0, 0, 0, 0, 0], "has zero norm"),
+])
+def test_a_bad_extrinsic_is_refused_naming_its_key(value, words):
+    with pytest.raises(ValueError, match=rf"config key 'window\.extrinsic'.*{words}"):
+        config.load_config(overrides={"window.extrinsic": value})
+
+
+def test_an_extrinsic_of_whole_numbers_is_taken_as_floats():
+    assert config.load_config(overrides={"window.extrinsic": [0, 0, 1, 0, 0, 0, 1]}).window.extrinsic == \
+        [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+
+
 def test_unknown_keys_are_named():
     with pytest.raises(ValueError, match=r"unknown parameter 'window\.sise'"):
         parameters.check_known({"window.sise", "window.size"}, {"window.size"})

@@ -234,6 +234,10 @@ def test_replay_survives_a_bag_of_bad_input_and_counts_each_case(office_bag, tmp
     assert c["dropped_bad_scan"] == 3  # malformed, all-NaN, empty
     assert c["nonfinite_points"] > 0
     assert c["bad_poses"] == 1  # the zero quaternion; the x3 one is normalised and used
+    notes = res.summary["notes"]  # each kind left out in the notes, with its count and last reason
+    assert "left out: 3 malformed or empty clouds of /points; last: malformed cloud: cloud has zero points" in notes, notes
+    assert "left out: 1 invalid odometry message of /odom; last: bad odometry: quaternion with zero or non-finite norm" \
+        in notes, notes
     assert c["scans_processed"] == 30 and res.summary["windows"] == 6
     assert len(read_diagnostics(tmp_path / "out" / "diagnostics.mcap")) == 6
 
@@ -428,6 +432,9 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
                                          "name the topic with --odom-topic"),
         "topic_of_another_type": (bag_path, ["--segmentation", "none", "--points-topic", "/odom"],
                                   "topic /odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/PointCloud2", ""),
+        "odometry_of_another_type": (bag_path, ["--segmentation", "none", "--odom-topic", "/points"],
+                                     "topic /points holds sensor_msgs/msg/PointCloud2, not nav_msgs/msg/Odometry "
+                                     "(its Odometry topics: /odom, /odom_gt)", "name one with --odom-topic"),
     }
     for name, (path, args, reason, hint) in cases.items():
         code, out, summary = replay_cli(path, tmp_path / f"out_{name}", capsys, *args)
@@ -614,3 +621,61 @@ def test_an_odometry_gap_is_reported_stale_in_bag_time(office_bag, tmp_path):
     assert "no odometry for" in status.message
     assert 1.0 + 1.5 < log_time * 1e-9 - t_first < 4.0 + 0.5  # in the gap, in bag time
     assert res.summary["counters"]["dropped_no_pose"] >= 10  # 2.6 s of 5 Hz scans had no odometry
+
+
+def test_a_damaged_bag_whose_clouds_cannot_be_read_says_so_not_that_it_has_none(office_bag, tmp_path, capsys):
+    """The .mcap cut to its first 100 bytes (metadata.yaml intact): replay (exit 1) and inspect (exit 2) say the
+    clouds cannot be read because the storage is damaged, and what metadata.yaml lists."""
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    cut = tmp_path / "cut"
+    shutil.copytree(bag_path, cut)
+    (mcap_file,) = cut.glob("*.mcap")
+    mcap_file.write_bytes(mcap_file.read_bytes()[:100])
+    code, out, summary = replay_cli(cut, tmp_path / "out", capsys, "--segmentation", "labels")
+    reason = f"/points cannot be read from {cut}: its storage is damaged ("
+    assert code == 1 and summary["no_scans"].startswith(reason), out
+    assert "metadata.yaml lists " in summary["no_scans"] and "/points (sensor_msgs/msg/PointCloud2, 30)" in out
+    assert cli.main(["inspect", str(cut), "--out", str(tmp_path / "insp"), "--segmentation", "labels"]) == 2
+    assert f"error: {reason}" in capsys.readouterr().err
+
+
+def test_ground_truth_topic_problems_are_noted(office_bag, tmp_path):
+    """A ground-truth topic named but absent, or the odometry topic itself: a note each, no RPE."""
+    bag_path, _ = office_bag
+    absent = run(bag_path, tmp_path / "a", gt_topic="/truth").summary["notes"]
+    assert "ground-truth topic /truth is not in the bag: no RPE (its Odometry topics: /odom, /odom_gt)" in absent
+    same = run(bag_path, tmp_path / "b", gt_topic="/odom", odom_topic="/odom").summary["notes"]
+    assert any(n.startswith("the ground-truth topic /odom is the odometry topic") for n in same), same
+    swapped = run(bag_path, tmp_path / "d", gt_topic="/odom").summary["notes"]  # the estimate: the other one
+    assert ("/odom is named for another role: using the bag's only other nav_msgs/msg/Odometry topic /odom_gt"
+            in swapped), swapped
+    assert not any("ground-truth" in n for n in run(bag_path, tmp_path / "c").summary["notes"])  # /odom_gt is there
+
+
+def test_inspect_refuses_a_topic_of_another_type_with_its_type(office_bag, tmp_path, capsys):
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    assert cli.main(["inspect", str(bag_path), "--out", str(tmp_path / "o"), "--points-topic", "/odom"]) == 2
+    err = capsys.readouterr().err
+    assert "error: topic /odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/PointCloud2" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_out_folder_inside_the_bag_is_refused_before_anything_runs(office_bag, tmp_path, capsys):
+    """replay, inspect and audit: --out the bag folder or a folder in it is refused (exit 2, nothing written)."""
+    from topometric_ros import cli
+
+    bag_path, _ = office_bag
+    mine = tmp_path / "bag"
+    shutil.copytree(bag_path, mine)
+    before = sorted(p.name for p in mine.iterdir())
+    for argv in (["replay", str(mine), "--out", str(mine)], ["inspect", str(mine), "--out", str(mine / "r")],
+                 ["audit", str(mine), "--out", str(mine / "a"), "--engine", "local"],
+                 ["replay", str(next(mine.glob("*.mcap"))), "--out", str(mine)]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: --out ") and ("is the bag" in err or "is inside the bag" in err), err
+    assert sorted(p.name for p in mine.iterdir()) == before

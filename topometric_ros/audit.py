@@ -78,12 +78,17 @@ def find_bags(args: Iterable[str]) -> list[Path]:
             if _is_bag(m):
                 out.append(m)
                 continue
-            found = []
-            for root, dirs, _ in os.walk(m):
+            found, visited = [], set()
+            for root, dirs, _ in os.walk(m, followlinks=True):  # bags linked into a folder count; each folder once
+                visited.add(os.path.realpath(root))
                 if _is_bag(Path(root)):
                     found.append(Path(root))
                     dirs.clear()  # not into a bag's own folders
+                dirs[:] = [d for d in dirs if os.path.realpath(os.path.join(root, d)) not in visited]
             if not found:
+                if m.is_dir() and not not_a_bag(m):
+                    raise FileNotFoundError(f"{m} holds a replay's or an audit's reports (windows.json or an audit "
+                                            "manifest), so it is not read as a bag; audit the bag those came from")
                 raise FileNotFoundError(f"no rosbag2 bag {'under' if m.is_dir() else 'at'} {m} (a bag is a folder "
                                         "with metadata.yaml or *.mcap / *.db3, or such a file)")
             out += sorted(found)
@@ -510,7 +515,7 @@ th{{background:#eee;cursor:pointer;user-select:none}} th:hover{{background:#ddd}
 tr.st-failed td{{background:#fbe9e7}} {css}
 </style></head><body>
 <h1>topometric fleet audit</h1>
-<p id="summary">{s['bags']} bags: {s['done']} done, {s['cached']} cached, {s['failed']} failed; engine {html.escape(str(s['engine']))}{'' if s.get('workers') is None else f", {s['workers']} workers"}{'' if not s.get('address') else f", cluster {html.escape(str(s['address']))}"};
+<p id="summary">{s['bags']} bag{'s' * (s['bags'] != 1)}: {s['done']} done, {s['cached']} cached, {s['failed']} failed; engine {html.escape(str(s['engine']))}{'' if s.get('workers') is None else f", {s['workers']} worker{'s' * (s['workers'] != 1)}"}{'' if not s.get('address') else f", cluster {html.escape(str(s['address']))}"};
 segmentation {html.escape(str(s.get('segmentation')))}, window {html.escape(_scans(s.get('window_size')))}; config {str(s.get('config_digest'))[:12]};
 {html.escape(str(s.get('created')))}. Rates: rotation °/s, translation m/s; worst_time_s: since the bag's first window's start.
 Click a header to sort (or open index.html#sort=COLUMN, #sort=-COLUMN descending); a bag's name opens its metrics.png.</p>
@@ -545,14 +550,18 @@ function sortBy(col) {{
 
 
 def format_summary(res: AuditResult) -> str:
-    """The CLI's closing lines: counts, failed bags with their reasons, where the report is."""
+    """The CLI's closing lines: counts, failed bags with their reasons, damage and input left out, where the
+    report is."""
+    from .replay import LEFT_OUT
+
     s = res.summary
-    lines = [f"audit: {s['bags']} bags: {s['done']} done, {s['cached']} cached, {s['failed']} failed "
+    lines = [f"audit: {s['bags']} bag{'s' * (s['bags'] != 1)}: {s['done']} done, {s['cached']} cached, "
+             f"{s['failed']} failed "
              f"({s['wall_s']:.1f} s, engine {s['engine']}"
-             + (f", {s['workers']} workers" if s.get("workers") else "")
+             + (f", {s['workers']} worker{'s' * (s['workers'] != 1)}" if s.get("workers") else "")
              + (f", cluster {s['address']}" if s.get("address") else "") + ")"]
     lines += [f"  FAILED {r['bag']}: {r.get('reason')}" for r in res.rows if r["status"] == "failed"]
     lines += [f"  note {r['bag']}: {n}" for r in res.rows if r["status"] == "ok"
-              for n in r.get("notes", []) if n.startswith("damaged bag")]
+              for n in r.get("notes", []) if n.startswith(("damaged bag", LEFT_OUT))]
     lines.append(f"report: {res.out / 'index.html'}, {res.out / 'fleet.csv'}, {res.out / 'fleet.json'}")
     return "\n".join(lines)

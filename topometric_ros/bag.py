@@ -64,6 +64,37 @@ def topics(path: str | Path | Sequence[str | Path]) -> dict[str, tuple[str, int]
         return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
 
 
+def unreadable(path: str | Path, topic: str) -> str:
+    """Why ``topic`` cannot be read from a damaged bag whose metadata.yaml lists it ("" when the bag is whole or
+    does not list it): the damage found and the listing."""
+    from . import storage
+
+    listed = storage.listed_topics(path) if Path(path).is_dir() else {}
+    if topic not in listed:
+        return ""
+    log = storage.ReadLog()
+    try:
+        storage.topic_table(path, log)
+    except storage.Unsupported:
+        return ""
+    damage = list(dict.fromkeys(log.lines()))  # each note once
+    if not damage:
+        return ""
+    return (f"{topic} cannot be read from {path}: its storage is damaged ({'; '.join(damage)}); "
+            f"metadata.yaml lists {describe_topics(listed)}")
+
+
+def unreadable_clouds(path: str | Path, topic: str = "") -> str:
+    """:func:`unreadable` for the cloud topic ``topic``, or with none named for the first PointCloud2 topic the
+    bag's metadata.yaml lists."""
+    from . import storage
+
+    if topic:
+        return unreadable(path, topic)
+    listed = [t for t, (kind, _) in sorted(storage.listed_topics(path).items()) if kind == POINTCLOUD2]
+    return unreadable(path, listed[0]) if listed else ""
+
+
 def not_a_bag(path: str | Path) -> str:
     """Why ``path`` is no rosbag2 bag (a bag folder, or a .mcap / .db3 file); "" when it is one."""
     from . import storage
@@ -99,6 +130,9 @@ def pick_topic(topics: dict[str, tuple[str, int]], msgtype: str, given: str = ""
         return default, (f"using {default}; the bag has other {msgtype} topics too: {', '.join(others)} (name one "
                          f"to use it)" if others else "")
     if len(of_type) == 1:
+        if default in set(exclude):
+            return of_type[0], (f"{default} is named for another role: using the bag's only other {msgtype} topic "
+                                f"{of_type[0]}")
         what = f"{default} is a {topics[default][0]}" if default in topics else f"no {default or 'topic'} in the bag"
         return of_type[0], f"{what}: using its only {msgtype} topic {of_type[0]}"
     return default, ""

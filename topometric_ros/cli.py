@@ -890,6 +890,16 @@ def _check_out(args: argparse.Namespace) -> None:
     path = Path(out).absolute()
     if path.exists() and not path.is_dir():
         raise ValueError(f"--out {out} is a file; give a folder")
+    from . import bag
+
+    inputs = [getattr(args, "bag", None)] + list(getattr(args, "bags", None) or [])
+    for given in filter(None, inputs):
+        folder = Path(given).absolute()
+        folder = folder if folder.is_dir() else folder.parent if folder.is_file() else None
+        if folder is not None and not bag.not_a_bag(folder) and (path == folder or folder in path.parents):
+            where = "the" if path == folder else "inside the"
+            raise ValueError(f"--out {out} is {where} bag {given}: the reports would be written among its files (and "
+                             "a .mcap there read as part of it); give a folder outside it")
     above = next(p for p in path.parents if p.exists())
     if not path.exists() and not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise ValueError(f"--out {out}: cannot make a folder in {above}"

@@ -263,9 +263,28 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
             if name in RANGES and not RANGES[name][0] <= changes[key] <= RANGES[name][1]:
                 raise ValueError(f"config key {name!r} = {value!r} is out of range "
                                  f"[{RANGES[name][0]:g}, {RANGES[name][1]:g}]")
+            if name == "window.extrinsic":
+                changes[key] = _extrinsic(name, changes[key])
             if name in REFUSED and changes[key] in REFUSED[name]:
                 raise ValueError(f"config key {name!r} = {value!r}: {REFUSED[name][changes[key]]}")
     return replace(obj, **changes)
+
+
+def _extrinsic(name: str, value: list) -> list[float]:
+    """``value`` as the 7 floats [x y z qx qy qz qw] (m; a quaternion of non-zero norm); ValueError naming the
+    key otherwise."""
+    import math
+
+    try:
+        numbers = [float(v) for v in value if not isinstance(v, bool)]
+    except (TypeError, ValueError):
+        numbers = []
+    if len(numbers) != 7 or len(value) != 7 or not all(math.isfinite(v) for v in numbers):
+        raise ValueError(f"config key {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw] (m; a quaternion), "
+                         f"got {value!r}")
+    if math.hypot(*numbers[3:]) < 1e-9:
+        raise ValueError(f"config key {name!r}: the quaternion {numbers[3:]} has zero norm (identity: 0, 0, 0, 1)")
+    return numbers
 
 
 def _coerce(name: str, current: Any, value: Any) -> Any:

@@ -33,8 +33,14 @@ def cloud_topic(path: str | Path, topic: str = "") -> tuple[str, int]:
     topics = bag.topics(path)
     found, _ = bag.pick_topic(topics, bag.POINTCLOUD2, topic, "/points")
     if found not in topics:
+        damaged = bag.unreadable_clouds(path, topic) or bag.unreadable(path, found)
+        if damaged:
+            raise bag.BagError(damaged)
         raise bag.BagError(f"no PointCloud2 topic {found} in {path}; name one with --points-topic. "
                            f"Topics: {bag.describe_topics(topics)}")
+    if topics[found][0] != bag.POINTCLOUD2:
+        raise bag.BagError(f"topic {found} holds {topics[found][0]}, not {bag.POINTCLOUD2}; name a PointCloud2 "
+                           f"topic with --points-topic. Topics: {bag.describe_topics(topics)}")
     return found, topics[found][1]
 
 

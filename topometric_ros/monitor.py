@@ -241,6 +241,7 @@ class Monitor:
         self.static_tf = StaticTransforms()
         self.results: deque = deque(maxlen=keep_results)
         self.last_error = ""
+        self.last_error_of: dict[str, str] = {}  # counter -> the last reason counted under it
         self.last_scan_received: float | None = None  # clock/bag time of the last scan (for STALE)
         self.last_pose_received: float | None = None
         # failure check (caller's clock): receive time of the newest scan processed end to end, and of the first
@@ -305,7 +306,7 @@ class Monitor:
     def _error(self, counter: str, message: str, received: float | None = None) -> None:
         """Count a lost scan (or window) and keep its reason; with its receive time it is a failure."""
         self.count(counter)
-        self.last_error = message
+        self.last_error = self.last_error_of[counter] = message
         if received is not None:
             with self._lock:
                 if self.failing_since is None:

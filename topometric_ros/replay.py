@@ -201,6 +201,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     if feed.bad_gt:
         notes.append(f"{feed.bad_gt} ground-truth message{'s' * (feed.bad_gt > 1)} of {opt.gt_topic} left out: "
                      f"no finite rigid transform (RPE uses the others)")
+    notes += _loss_notes(c, monitor.last_error_of, opt)
     if monitor.extrinsic_note:
         notes.append(monitor.extrinsic_note)
     if c["scans_processed"] and not records:
@@ -344,13 +345,17 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
     """Why a replay processed no scan, from the bag's topics, the reading and the monitor's counters."""
     c, points, odom = summary["counters"], summary["points_topic"], summary["odom_topic"]
     clouds = _of_type(topics, bag.POINTCLOUD2)
+    damaged = bag.unreadable(summary["bag"], points) if points not in topics else ""
     if not clouds:
-        return "the bag has no sensor_msgs/msg/PointCloud2 topic"
+        return bag.unreadable_clouds(summary["bag"]) or damaged or "the bag has no sensor_msgs/msg/PointCloud2 topic"
     if points not in topics:
-        return (f"PointCloud2 topic {points} is not in the bag (its PointCloud2 topics: {', '.join(clouds)}); "
-                "name one with --points-topic")
+        return damaged or (f"PointCloud2 topic {points} is not in the bag (its PointCloud2 topics: "
+                           f"{', '.join(clouds)}); name one with --points-topic")
     if topics[points][0] != bag.POINTCLOUD2:
         return f"topic {points} holds {topics[points][0]}, not sensor_msgs/msg/PointCloud2"
+    if odom in topics and topics[odom][0] != bag.ODOMETRY:
+        return (f"topic {odom} holds {topics[odom][0]}, not {bag.ODOMETRY} (its Odometry topics: "
+                f"{', '.join(_of_type(topics, bag.ODOMETRY)) or 'none'}); name one with --odom-topic")
     if summary["scans_read"] == 0:
         return f"no message of {points} could be read" + (f" ({summary['error']})" if summary["error"] else "")
     if c["dropped_bad_scan"] >= summary["scans_read"]:
@@ -388,6 +393,22 @@ def load_segmenter(config: Config):
         raise ValueError(f"{e}") from None
 
 
+#: The prefix of a note on input the monitor left out (audit's console repeats them).
+LEFT_OUT = "left out: "
+
+
+def _loss_notes(counters: dict, last_error_of: dict[str, str], opt: ReplayOptions) -> list[str]:
+    """A note per kind of bad input the monitor counted and left out (malformed clouds, invalid odometry, scans
+    that failed in processing): how many, and the last reason."""
+    kinds = (("dropped_bad_scan", f"malformed or empty cloud of {opt.points_topic}",
+              f"malformed or empty clouds of {opt.points_topic}"),
+             ("bad_poses", f"invalid odometry message of {opt.odom_topic}",
+              f"invalid odometry messages of {opt.odom_topic}"),
+             ("scan_errors", "scan that failed in processing", "scans that failed in processing"))
+    return [f"{LEFT_OUT}{n} {one if n == 1 else many}; last: {last_error_of.get(counter, '')}"
+            for counter, one, many in kinds if (n := counters.get(counter, 0))]
+
+
 def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayOptions, dict]:
     """The options with the points and odometry topics found in the bag (bag.pick_topic; notes say when a
     topic was picked) and the bag's topics {topic: (type, count)} ({} when they cannot be listed)."""
@@ -401,6 +422,12 @@ def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayO
     points, note_p = bag.pick_topic(topics, bag.POINTCLOUD2, opt.points_topic, "/points")
     odom, note_o = bag.pick_topic(topics, bag.ODOMETRY, opt.odom_topic, "/odom", exclude=[opt.gt_topic])
     notes += [n for n in (note_p, note_o) if n]
+    if opt.gt_topic and opt.gt_topic == odom:
+        notes.append(f"the ground-truth topic {opt.gt_topic} is the odometry topic: it is read as odometry, "
+                     "so no RPE")
+    elif opt.gt_topic and opt.gt_topic != ReplayOptions.gt_topic and opt.gt_topic not in topics:
+        notes.append(f"ground-truth topic {opt.gt_topic} is not in the bag: no RPE (its Odometry topics: "
+                     f"{', '.join(_of_type(topics, bag.ODOMETRY)) or 'none'})")
     return with_(opt, points_topic=points, odom_topic=odom), topics
 
 

@@ -136,6 +136,20 @@ def bag_files(path: str | Path) -> list[Path]:
     return sorted(found, key=lambda f: [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", f.name)])
 
 
+def listed_topics(path: str | Path) -> dict[str, tuple[str, int]]:
+    """{topic: (message type, message count)} as a bag folder's metadata.yaml lists them ({} without one): what
+    the bag held when it was recorded, whatever its storage gives now."""
+    path = Path(path)
+    entries = _metadata(path).get("topics_with_message_count") or [] if path.is_dir() else []
+    table = {}
+    for e in entries if isinstance(entries, list) else []:
+        meta = e.get("topic_metadata") if isinstance(e, dict) else None
+        if isinstance(meta, dict) and meta.get("name"):
+            count = e.get("message_count")
+            table[str(meta["name"])] = (str(meta.get("type", "")), count if isinstance(count, int) else 0)
+    return table
+
+
 def _metadata(folder: Path) -> dict:
     """rosbag2_bagfile_information of metadata.yaml, {} when it is missing or unreadable."""
     return _read_metadata(folder)[0]
