@@ -103,7 +103,7 @@ def test_out_of_range_config_values_are_refused_as_the_node_refuses_them(key, va
         load_config(overrides={key: value})
     yaml_file = tmp_path / "c.yaml"
     yaml_file.write_text(f"{key.split('.')[0]}:\n  {key.split('.')[1]}: {value}\n")
-    with pytest.raises(ValueError, match="out of range"):
+    with pytest.raises(ValueError, match=f"^{yaml_file}: config key .*out of range"):  # the file named
         load_config(yaml_file)
 
 

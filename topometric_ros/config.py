@@ -319,7 +319,10 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     cfg = Config()
     if path is not None:
         params = read_parameters(path)
-        cfg = apply(cfg, {k: v for k, v in params.items() if k not in NODE_PARAMETERS})
+        try:
+            cfg = apply(cfg, {k: v for k, v in params.items() if k not in NODE_PARAMETERS})
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
     if overrides:
         cfg = apply(cfg, overrides)
     return cfg
