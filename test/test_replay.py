@@ -17,7 +17,7 @@ from topometric_ros.bag import BagError
 from topometric_ros.config import load_config
 from topometric_ros.pipeline import ProcessedScan, WindowResult
 from topometric_ros.metrics.rpe import rpe as relative_pose_error
-from topometric_ros.replay import ReplayOptions, metrics_figure, network_options, replay
+from topometric_ros.replay import CORE_COLUMNS, ReplayOptions, metrics_figure, network_options, replay
 from topometric_ros.reports import pyplot
 
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
@@ -77,6 +77,7 @@ def test_replay_writes_decodable_diagnostics_and_reports(office_bag, tmp_path):
         assert st.message == rec["message"]
     rows = list(csv.DictReader(open(tmp_path / "out" / "windows.csv")))
     assert len(rows) == 6 and float(rows[2]["cpv"]) == pytest.approx(res.windows[2]["cpv"], rel=1e-5)
+    assert tuple(rows[0])[:len(CORE_COLUMNS)] == CORE_COLUMNS  # what a replay without windows writes as header
     doc = json.loads((tmp_path / "out" / "windows.json").read_text())
     assert doc["summary"]["windows"] == 6 and len(doc["windows"]) == 6
     assert all(np.isfinite(r["rpe"]) for r in res.windows)  # the bag has /odom_gt
@@ -526,6 +527,8 @@ def test_a_bag_shorter_than_a_window_says_so_and_how_to_replay_it(office_bag, tm
     assert ("note           no window: 3 scans processed, fewer than a window of 5 scans (automatic: 1 s at 5 Hz); "
             "replay with --window-size 3") in out
     assert "window         5 scans (automatic: 1 s at 5 Hz)" in out and summary["window_scans"] == 5
+    with open(tmp_path / "out" / "windows.csv") as f:  # a header all the same, for scripts reading many replays
+        assert tuple(csv.DictReader(f).fieldnames) == CORE_COLUMNS
     fig = metrics_figure([], None, summary)  # metrics.png says so too, not six empty panels alone
     assert any(t.get_text().startswith("NO WINDOW\nno window: 3 scans processed") for t in fig.texts)
     pyplot().close(fig)

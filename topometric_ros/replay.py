@@ -86,6 +86,11 @@ def read_bag(path: str | Path, wanted: set[str], log: storage.ReadLog) -> Iterat
 
 
 # ------------------------------------------------------------------ replay
+#: The first columns of every window record (windows.csv's header even when a replay gives no window).
+CORE_COLUMNS = ("index", "start", "end", "n_scans", "pne", "cpv", "rot_rate", "trans_rate", "rot_rate_se",
+                "trans_rate_se", "rpe_estimate")
+
+
 class _Recorder:
     """Collects window records and writes the diagnostics bag as windows complete (thread safe)."""
 
@@ -103,6 +108,7 @@ class _Recorder:
         self.hardware_id = hardware_id
 
     def window(self, result, scans) -> None:
+        """Keep a window's record (its first keys are CORE_COLUMNS) and write its /diagnostics status."""
         m = self.monitor_ref[0]
         a = m.health.last
         rec = {"index": len(self.records), "start": result.stamps[0], "end": result.stamps[-1],
@@ -484,7 +490,8 @@ def write_reports(out: Path, records: list[dict], summary: dict, truth: dict | N
     keys: list[str] = []
     for r in records:
         keys += [k for k in r if k not in keys]
-    write_csv(out / "windows.csv", [{k: csv_value(r.get(k, "")) for k in keys} for r in records])
+    rows = [{k: csv_value(r.get(k, "")) for k in keys} for r in records]
+    write_csv(out / "windows.csv", rows, CORE_COLUMNS)  # no window: the header still, for scripts reading many
     write_json(out / "windows.json", {"summary": summary, "windows": records})
     if plot:
         plot_metrics(records, out / "metrics.png", truth, summary)

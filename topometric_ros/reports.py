@@ -6,7 +6,7 @@ import json
 import math
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -34,12 +34,13 @@ def written_whole(path: str | Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
-def write_csv(path: str | Path, rows: list[dict]) -> Path:
-    """rows (dicts) -> CSV at path, written whole (:func:`written_whole`); the columns are every row's keys in
-    the order first seen (a row without one leaves it empty: inspect's failed clouds have fewer)."""
+def write_csv(path: str | Path, rows: list[dict], columns: Sequence[str] = ()) -> Path:
+    """rows (dicts) -> CSV at path, written whole (:func:`written_whole`); the columns are ``columns``, then every
+    row's other keys in the order first seen (a row without one leaves it empty: inspect's failed clouds have
+    fewer)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    columns = list(dict.fromkeys(key for row in rows for key in row))
+    columns = list(dict.fromkeys([*columns, *(key for row in rows for key in row)]))
     with written_whole(path) as tmp, tmp.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns)
         w.writeheader()
