@@ -136,12 +136,15 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
         find_bags([str(fleet / "night_0" / "truth.json")])
     replayed = tmp_path / "replayed"  # a replay's reports (diagnostics.mcap beside windows.json) are no bag either
     replay(bags[0], replayed, config, ReplayOptions(progress=False, plot=False))
-    with pytest.raises(FileNotFoundError, match="holds a replay's or an audit's reports"):
+    with pytest.raises(FileNotFoundError, match="holds a replay's or an audit's reports \\(windows.json beside"):
         find_bags([str(replayed)])
-    linked = tmp_path / "linked"  # bags linked into a folder are found, a link back up is walked once
-    linked.mkdir()
+    shutil.copytree(bags[2], replayed / "inner")  # a bag in a folder that holds reports is a bag all the same
+    assert find_bags([str(replayed / "inner")]) == [replayed / "inner"]
+    linked = tmp_path / "linked"  # bags linked into a folder are found; links back up are walked once (two of
+    linked.mkdir()                 # them, unchecked, would give 2^40 paths before the kernel's link limit)
     (linked / "a").symlink_to(bags[1], target_is_directory=True)
-    (linked / "loop").symlink_to(linked, target_is_directory=True)
+    for loop in ("loop1", "loop2"):
+        (linked / loop).symlink_to(linked, target_is_directory=True)
     assert find_bags([str(linked)]) == [linked / "a"]
     assert (first.summary["ran"], first.summary["done"], first.summary["failed"]) == (5, 4, 1)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "bags").rglob("*")}

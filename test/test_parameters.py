@@ -43,6 +43,7 @@ def test_in_range_values_and_choices():
     ([1, 2], "must be 7 finite numbers"),
     ([0, 0, 0, 0, 0, 0, float("nan")], "must be 7 finite numbers"),
     ([0, 0, 0, 0, 0, 0, True], "must be 7 finite numbers"),
+    (["0", "0", "0", "0", "0", "0", "1"], "must be 7 finite numbers"),  # strict as every other key
     ([0, 0, 0, 0, 0, 0, 0], "has zero norm"),
 ])
 def test_a_bad_extrinsic_is_refused_naming_its_key(value, words):

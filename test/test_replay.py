@@ -655,6 +655,9 @@ def test_ground_truth_topic_problems_are_noted(office_bag, tmp_path):
     assert ("/odom is named for another role: using the bag's only other nav_msgs/msg/Odometry topic /odom_gt"
             in swapped), swapped
     assert not any("ground-truth" in n for n in run(bag_path, tmp_path / "c").summary["notes"])  # /odom_gt is there
+    clouds = run(bag_path, tmp_path / "e", gt_topic="/points").summary
+    assert ("ground-truth topic /points holds sensor_msgs/msg/PointCloud2, not nav_msgs/msg/Odometry: no RPE"
+            in clouds["notes"]) and clouds["windows"] == 6
 
 
 def test_inspect_refuses_a_topic_of_another_type_with_its_type(office_bag, tmp_path, capsys):
@@ -680,5 +683,14 @@ def test_an_out_folder_inside_the_bag_is_refused_before_anything_runs(office_bag
                  ["replay", str(next(mine.glob("*.mcap"))), "--out", str(mine)]):
         assert cli.main(argv) == 2, argv
         err = capsys.readouterr().err
-        assert err.startswith("error: --out ") and ("is the bag" in err or "is inside the bag" in err), err
+        assert err.startswith("error: --out ") and (" bag folder " in err or "bag file" in err), err
+    link = tmp_path / "link"  # the bag through a link is the bag
+    link.symlink_to(mine, target_is_directory=True)
+    assert cli.main(["inspect", str(mine), "--out", str(link)]) == 2 and "is the bag folder" in capsys.readouterr().err
     assert sorted(p.name for p in mine.iterdir()) == before
+    loose = tmp_path / "downloads"  # a loose .mcap: a folder beside it is fine, only its own folder is refused
+    loose.mkdir()
+    shutil.copy(next(mine.glob("*.mcap")), loose / "run.mcap")
+    assert cli.main(["inspect", str(loose / "run.mcap"), "--out", str(loose), "--limit", "1"]) == 2
+    assert cli.main(["inspect", str(loose / "run.mcap"), "--out", str(loose / "inspect"), "--limit", "1",
+                     "--segmentation", "labels", "--no-plot"]) == 0

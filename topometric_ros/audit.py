@@ -56,11 +56,15 @@ NOT_IN_KEY = ("segmentation.weights", "window.pipelined")
 
 
 # ------------------------------------------------------------------ finding bags
+def _reports_in(folder: Path) -> str:
+    """The report file that marks ``folder`` as an audit's or a replay's output ("" none)."""
+    return next((name for name in (MANIFEST, "windows.json") if (folder / name).is_file()), "")
+
+
 def _is_bag(p: Path) -> bool:
-    if (p / MANIFEST).is_file() or (p.parent / MANIFEST).is_file():
-        return False  # an audit's own output (its diagnostics.mcap), not a bag
-    if (p / "windows.json").is_file() or (p.parent / "windows.json").is_file():
-        return False  # a replay's reports (its diagnostics.mcap beside windows.json), not a bag
+    """A bag, and not an audit's or a replay's output (their diagnostics.mcap beside a manifest or windows.json)."""
+    if _reports_in(p.parent if p.is_file() else p):
+        return False
     return not not_a_bag(p)
 
 
@@ -86,9 +90,10 @@ def find_bags(args: Iterable[str]) -> list[Path]:
                     dirs.clear()  # not into a bag's own folders
                 dirs[:] = [d for d in dirs if os.path.realpath(os.path.join(root, d)) not in visited]
             if not found:
-                if m.is_dir() and not not_a_bag(m):
-                    raise FileNotFoundError(f"{m} holds a replay's or an audit's reports (windows.json or an audit "
-                                            "manifest), so it is not read as a bag; audit the bag those came from")
+                if m.is_dir() and not not_a_bag(m) and _reports_in(m):
+                    raise FileNotFoundError(f"{m} holds a replay's or an audit's reports ({_reports_in(m)} beside "
+                                            "a diagnostics.mcap), so it is not read as a bag; if it is a bag, move "
+                                            "the reports out of it")
                 raise FileNotFoundError(f"no rosbag2 bag {'under' if m.is_dir() else 'at'} {m} (a bag is a folder "
                                         "with metadata.yaml or *.mcap / *.db3, or such a file)")
             out += sorted(found)

@@ -69,7 +69,7 @@ def unreadable(path: str | Path, topic: str) -> str:
     does not list it): the damage found and the listing."""
     from . import storage
 
-    listed = storage.listed_topics(path) if Path(path).is_dir() else {}
+    listed = storage.listed_topics(path)
     if topic not in listed:
         return ""
     log = storage.ReadLog()
@@ -77,9 +77,9 @@ def unreadable(path: str | Path, topic: str) -> str:
         storage.topic_table(path, log)
     except storage.Unsupported:
         return ""
-    damage = list(dict.fromkeys(log.lines()))  # each note once
-    if not damage:
+    if not log.summary():  # whole, only without this topic: not a damage
         return ""
+    damage = list(dict.fromkeys(log.lines()))  # each note once
     return (f"{topic} cannot be read from {path}: its storage is damaged ({'; '.join(damage)}); "
             f"metadata.yaml lists {describe_topics(listed)}")
 

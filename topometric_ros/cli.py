@@ -892,14 +892,17 @@ def _check_out(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out} is a file; give a folder")
     from . import bag
 
+    real = path.resolve()  # links resolved on both sides: a link to the bag is the bag
     inputs = [getattr(args, "bag", None)] + list(getattr(args, "bags", None) or [])
     for given in filter(None, inputs):
-        folder = Path(given).absolute()
-        folder = folder if folder.is_dir() else folder.parent if folder.is_file() else None
-        if folder is not None and not bag.not_a_bag(folder) and (path == folder or folder in path.parents):
-            where = "the" if path == folder else "inside the"
-            raise ValueError(f"--out {out} is {where} bag {given}: the reports would be written among its files (and "
-                             "a .mcap there read as part of it); give a folder outside it")
+        source = Path(given).resolve()
+        if source.is_file() and real == source.parent:  # a .mcap / .db3 file: not into its own folder
+            raise ValueError(f"--out {out} is the folder of the bag file {given}: the reports (a diagnostics.mcap among "
+                             "them) would sit beside it; give another folder")
+        if source.is_dir() and not bag.not_a_bag(source) and (real == source or source in real.parents):
+            raise ValueError(f"--out {out} is {'the' if real == source else 'inside the'} bag folder {given}: the "
+                             "reports (a diagnostics.mcap among them) would be written into the bag; give a folder "
+                             "outside it")
     above = next(p for p in path.parents if p.exists())
     if not path.exists() and not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise ValueError(f"--out {out}: cannot make a folder in {above}"

@@ -275,10 +275,7 @@ def _extrinsic(name: str, value: list) -> list[float]:
     key otherwise."""
     import math
 
-    try:
-        numbers = [float(v) for v in value if not isinstance(v, bool)]
-    except (TypeError, ValueError):
-        numbers = []
+    numbers = [float(v) for v in value if isinstance(v, (int, float)) and not isinstance(v, bool)]
     if len(numbers) != 7 or len(value) != 7 or not all(math.isfinite(v) for v in numbers):
         raise ValueError(f"config key {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw] (m; a quaternion), "
                          f"got {value!r}")

@@ -33,7 +33,7 @@ def cloud_topic(path: str | Path, topic: str = "") -> tuple[str, int]:
     topics = bag.topics(path)
     found, _ = bag.pick_topic(topics, bag.POINTCLOUD2, topic, "/points")
     if found not in topics:
-        damaged = bag.unreadable_clouds(path, topic) or bag.unreadable(path, found)
+        damaged = bag.unreadable(path, found) or (not topic and bag.unreadable_clouds(path))
         if damaged:
             raise bag.BagError(damaged)
         raise bag.BagError(f"no PointCloud2 topic {found} in {path}; name one with --points-topic. "

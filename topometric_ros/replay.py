@@ -353,7 +353,7 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
     clouds = _of_type(topics, bag.POINTCLOUD2)
     damaged = bag.unreadable(summary["bag"], points) if points not in topics else ""
     if not clouds:
-        return bag.unreadable_clouds(summary["bag"]) or damaged or "the bag has no sensor_msgs/msg/PointCloud2 topic"
+        return damaged or bag.unreadable_clouds(summary["bag"]) or "the bag has no sensor_msgs/msg/PointCloud2 topic"
     if points not in topics:
         return damaged or (f"PointCloud2 topic {points} is not in the bag (its PointCloud2 topics: "
                            f"{', '.join(clouds)}); name one with --points-topic")
@@ -431,6 +431,8 @@ def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayO
     if opt.gt_topic and opt.gt_topic == odom:
         notes.append(f"the ground-truth topic {opt.gt_topic} is the odometry topic: it is read as odometry, "
                      "so no RPE")
+    elif opt.gt_topic in topics and topics[opt.gt_topic][0] != bag.ODOMETRY:
+        notes.append(f"ground-truth topic {opt.gt_topic} holds {topics[opt.gt_topic][0]}, not {bag.ODOMETRY}: no RPE")
     elif opt.gt_topic and opt.gt_topic != ReplayOptions.gt_topic and opt.gt_topic not in topics:
         notes.append(f"ground-truth topic {opt.gt_topic} is not in the bag: no RPE (its Odometry topics: "
                      f"{', '.join(_of_type(topics, bag.ODOMETRY)) or 'none'})")

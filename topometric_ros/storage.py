@@ -137,10 +137,14 @@ def bag_files(path: str | Path) -> list[Path]:
 
 
 def listed_topics(path: str | Path) -> dict[str, tuple[str, int]]:
-    """{topic: (message type, message count)} as a bag folder's metadata.yaml lists them ({} without one): what
-    the bag held when it was recorded, whatever its storage gives now."""
+    """{topic: (message type, message count)} as a bag's metadata.yaml lists them (a folder's, or for a storage
+    file the one beside it that lists it; {} without one): what the bag held when it was recorded, whatever its
+    storage gives now."""
     path = Path(path)
-    entries = _metadata(path).get("topics_with_message_count") or [] if path.is_dir() else []
+    meta = _metadata(path) if path.is_dir() else _metadata(path.parent)
+    if path.is_file() and path.name not in (meta.get("relative_file_paths") or []):
+        meta = {}  # a file listed by no metadata.yaml beside it
+    entries = meta.get("topics_with_message_count") or []
     table = {}
     for e in entries if isinstance(entries, list) else []:
         meta = e.get("topic_metadata") if isinstance(e, dict) else None
