@@ -90,10 +90,11 @@ def find_bags(args: Iterable[str]) -> list[Path]:
                     dirs.clear()  # not into a bag's own folders
                 dirs[:] = [d for d in dirs if os.path.realpath(os.path.join(root, d)) not in visited]
             if not found:
-                if m.is_dir() and not not_a_bag(m) and _reports_in(m):
-                    raise FileNotFoundError(f"{m} holds a replay's or an audit's reports ({_reports_in(m)} beside "
-                                            "a diagnostics.mcap), so it is not read as a bag; if it is a bag, move "
-                                            "the reports out of it")
+                reports = _reports_in(m) if m.is_dir() and not not_a_bag(m) else ""
+                if reports:
+                    raise FileNotFoundError(f"{m} holds a replay's or an audit's reports ({reports} beside a "
+                                            "diagnostics.mcap), so it is not read as a bag; if it is a bag, move the "
+                                            "reports out of it")
                 raise FileNotFoundError(f"no rosbag2 bag {'under' if m.is_dir() else 'at'} {m} (a bag is a folder "
                                         "with metadata.yaml or *.mcap / *.db3, or such a file)")
             out += sorted(found)

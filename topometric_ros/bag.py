@@ -84,13 +84,10 @@ def unreadable(path: str | Path, topic: str) -> str:
             f"metadata.yaml lists {describe_topics(listed)}")
 
 
-def unreadable_clouds(path: str | Path, topic: str = "") -> str:
-    """:func:`unreadable` for the cloud topic ``topic``, or with none named for the first PointCloud2 topic the
-    bag's metadata.yaml lists."""
+def unreadable_clouds(path: str | Path) -> str:
+    """:func:`unreadable` for the first PointCloud2 topic the bag's metadata.yaml lists ("" when it lists none)."""
     from . import storage
 
-    if topic:
-        return unreadable(path, topic)
     listed = [t for t, (kind, _) in sorted(storage.listed_topics(path).items()) if kind == POINTCLOUD2]
     return unreadable(path, listed[0]) if listed else ""
 

@@ -147,10 +147,10 @@ def listed_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     entries = meta.get("topics_with_message_count") or []
     table = {}
     for e in entries if isinstance(entries, list) else []:
-        meta = e.get("topic_metadata") if isinstance(e, dict) else None
-        if isinstance(meta, dict) and meta.get("name"):
+        topic = e.get("topic_metadata") if isinstance(e, dict) else None
+        if isinstance(topic, dict) and topic.get("name"):
             count = e.get("message_count")
-            table[str(meta["name"])] = (str(meta.get("type", "")), count if isinstance(count, int) else 0)
+            table[str(topic["name"])] = (str(topic.get("type", "")), count if isinstance(count, int) else 0)
     return table
 
 
