@@ -3,8 +3,11 @@ formatted help for the rest)."""
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
+
+import pytest
 
 
 def test_replay_help_in_a_real_process_shows_defaults():
@@ -126,6 +129,16 @@ def test_an_output_that_is_a_file_or_a_bag_that_is_none_is_a_one_line_error(tmp_
 
     res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "--version"], capture_output=True, text=True)
     assert res.returncode == 0 and res.stdout.strip() == f"topometric {__version__}"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_an_output_folder_the_os_will_not_make_is_named_as_the_flag(office_bag):
+    """/proc looks writable to root, yet no folder can be made in it: exit 2, the error names --out (not a bare
+    OS message), before the bag is read."""
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "replay", str(office_bag[0]), "--out", "/proc/x",
+                          "--segmentation", "labels", "--quiet"], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.strip().startswith("error: --out /proc/x: "), res.stderr
+    assert "Traceback" not in res.stderr
 
 
 def test_an_unknown_option_is_refused_by_its_subcommand_with_the_closest_known_ones():

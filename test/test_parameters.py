@@ -56,6 +56,36 @@ def test_an_extrinsic_of_whole_numbers_is_taken_as_floats():
         [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 
 
+@pytest.mark.parametrize("text, expected", [("1e-3", 0.001), ("2.5e1", 25.0), ("7", 7.0), ("0.5", 0.5)])
+def test_a_float_setting_takes_exponent_notation(text, expected):
+    """PyYAML (YAML 1.1) leaves 1e-3 a string; rcl's parser reads it as a double: replay takes it too."""
+    import yaml
+
+    assert config.load_config(overrides={"health.cpv_warn": yaml.safe_load(text)}).health.cpv_warn == expected
+
+
+@pytest.mark.parametrize("text", ["nan", ".nan", "-inf", ".inf", "1e999"])
+def test_a_float_setting_must_be_finite(text):
+    """NaN and infinities are refused, named as such (a NaN would pass every range check silently)."""
+    import yaml
+
+    with pytest.raises(ValueError, match=r"'metrics\.cpv_epsilon' must be a finite number"):
+        config.load_config(overrides={"metrics.cpv_epsilon": yaml.safe_load(text)})
+
+
+def test_every_numeric_setting_has_a_range_holding_its_default():
+    """A numeric leaf without a range would take a negative distance or angle silently (and the node would
+    declare it without a range)."""
+    numeric = {k: v for k, v in config.flatten(config.Config()).items()
+               if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    assert set(numeric) <= set(config.RANGES), sorted(set(numeric) - set(config.RANGES))
+    for key, value in numeric.items():
+        lo, hi = config.RANGES[key]
+        assert lo <= value <= hi, key
+    with pytest.raises(ValueError, match=r"'planes\.inlier_distance' = -0\.1 is out of range"):
+        config.load_config(overrides={"planes.inlier_distance": -0.1})
+
+
 def test_unknown_keys_are_named():
     with pytest.raises(ValueError, match=r"unknown parameter 'window\.sise'"):
         parameters.check_known({"window.sise", "window.size"}, {"window.size"})

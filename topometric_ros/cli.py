@@ -909,6 +909,15 @@ def _check_out(args: argparse.Namespace) -> None:
                          + (" (a file)" if not above.is_dir() else " (not writable)"))
 
 
+def _under_out(args: argparse.Namespace, filename) -> bool:
+    """Whether ``filename`` (an OSError's) is --out or lies inside it: the folder named cannot be made or written."""
+    out = getattr(args, "out", None)
+    if not out or not isinstance(filename, (str, os.PathLike)):
+        return False
+    folder, path = Path(out).absolute(), Path(filename).absolute()
+    return path == folder or folder in path.parents
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.command_line = "topometric " + shlex.join(sys.argv[1:] if argv is None else argv)  # for model cards
@@ -920,12 +929,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError) as e:
+    except OSError as e:  # --out's own (it cannot be made or written): exit 2; else the machine's (a full disk): 1
+        if _under_out(args, e.filename):
+            print(f"error: --out {args.out}: {e.strerror or e} ({e.filename}); give a folder that can be written",
+                  file=sys.stderr)
+            return 2
+        print(f"error: {e}", file=sys.stderr)
+        return 2 if isinstance(e, FileNotFoundError) else 1
+    except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except OSError as e:  # the machine's, not the arguments' (permissions, a full disk): one line, exit 1
-        print(f"error: {e}", file=sys.stderr)
-        return 1
     except Exception as e:  # noqa: BLE001 - a clear one-line message beats a traceback for users
         from .bag import BagError
         from .segmentation.checkpoint import SegmentationError

@@ -7,6 +7,7 @@ declares one ROS parameter per leaf, named ``section.field``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -192,7 +193,17 @@ RANGES: dict[str, tuple[float, float]] = {
     "segmentation.floor_snap": (0.0, 0.2),
     # planes
     "planes.min_points": (3, 1_000_000), "planes.max_sample_points": (3, 1_000_000),
+    "planes.min_width": (0.0, 10.0), "planes.inlier_distance": (0.001, 1.0), "planes.normal_angle_deg": (0.1, 90.0),
+    "planes.merge_distance": (0.0, 1.0), "planes.merge_gap": (0.0, 100.0), "planes.opening_width": (0.0, 100.0),
+    "planes.opening_band": (0.0, 100.0), "planes.opening_through": (0.0, 1.0), "planes.tile_max_rms": (0.0001, 1.0),
+    "planes.tile_min_flatness": (0.0, 1000.0), "planes.tile_angle_deg": (0.1, 90.0),
+    "planes.o3d_normal_variance_deg": (0.1, 90.0), "planes.o3d_coplanarity_deg": (0.1, 90.0),
+    "planes.o3d_outlier_ratio": (0.0, 1.0), "planes.opening_min_points": (1, 100_000), "planes.tile_rings": (1, 64),
+    "planes.tile_columns": (1, 512), "planes.tile_levels": (1, 8), "planes.tile_min_points": (3, 100_000),
+    "planes.o3d_knn": (3, 1000),
     # metrics
+    "metrics.pne_cluster_deg": (0.1, 90.0), "metrics.pne_floor_deg": (0.001, 10.0), "metrics.cpv_angle_deg": (0.1, 90.0),
+    "metrics.cpv_epsilon": (0.001, 10.0),
     "metrics.radius": (0.01, 10.0), "metrics.min_neighbours": (0, 10_000), "metrics.rate_gate_per_m": (0.0, 1.0),
     # health
     "health.stale_after_s": (0.1, 3600.0), "health.fail_after_s": (0.0, 3600.0),
@@ -273,8 +284,6 @@ def apply(obj: Any, values: Mapping[str, Any], where: str = "") -> Any:
 def _extrinsic(name: str, value: list) -> list[float]:
     """``value`` as the 7 floats [x y z qx qy qz qw] (m; a quaternion of non-zero norm); ValueError naming the
     key otherwise."""
-    import math
-
     numbers = [float(v) for v in value if isinstance(v, (int, float)) and not isinstance(v, bool)]
     if len(numbers) != 7 or len(value) != 7 or not all(math.isfinite(v) for v in numbers):
         raise ValueError(f"config key {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw] (m; a quaternion), "
@@ -284,6 +293,17 @@ def _extrinsic(name: str, value: list) -> list[float]:
     return numbers
 
 
+def _number(value: Any) -> float | None:
+    """``value`` as a float when it is a number, or a string that reads as one (YAML 1.1 leaves 1e-3 a string),
+    else None."""
+    if isinstance(value, (int, float)):
+        return float(value)
+    try:
+        return float(value) if isinstance(value, str) else None
+    except ValueError:
+        return None
+
+
 def _coerce(name: str, current: Any, value: Any) -> Any:
     kind = type(current)
     if kind is str and isinstance(value, bool) and {"on", "off"} <= set(CHOICES.get(name, ())):
@@ -291,8 +311,10 @@ def _coerce(name: str, current: Any, value: Any) -> Any:
     if kind is bool:
         if isinstance(value, bool):
             return value
-    elif kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
+    elif kind is float and not isinstance(value, bool) and _number(value) is not None:
+        if not math.isfinite(_number(value)):
+            raise ValueError(f"config key {name!r} must be a finite number, got {value!r}")
+        return _number(value)
     elif isinstance(value, kind) and not isinstance(value, bool):
         return value
     raise ValueError(f"config key {name!r} must be {kind.__name__}, got {value!r}")
