@@ -314,3 +314,17 @@ def test_rate_accuracy_divides_by_the_injected_drift_and_apart_by_the_true_error
     (t_only,) = rate_accuracy([window], [{**episode, "rot_rate": 0.0}])
     assert np.isnan(t_only["rot_rate_vs_true"]) and "rot_rate" not in t_only
     assert t_only["trans_rate_vs_true"] == pytest.approx(0.25)
+
+
+def test_the_detection_table_is_strict_json_when_a_rate_is_undefined(tmp_path):
+    """No episode gives a detection rate of NaN: detection.json holds null there (a bare NaN is not JSON, and
+    JSON.parse in a browser refuses the whole file), as every other report does."""
+
+    from topometric_ros.experiments.alarms import _write
+
+    table = {"rows": [{"bag": "b", "mode": "r", "scale": 1.0, "episodes": 0, "detected": 0, "latencies": []}],
+             "drift_free": {"false_warn_windows": 0, "minutes": 1.0}, "within_windows": 2, "detected": 0,
+             "episodes": 0, "detection_rate": float("nan"), "false_warns_per_10min": 0.0}
+    _write(tmp_path, table)
+    doc = json.loads((tmp_path / "detection.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+    assert doc["detection_rate"] is None and (tmp_path / "detection.png").stat().st_size > 0

@@ -141,6 +141,43 @@ def test_an_output_folder_the_os_will_not_make_is_named_as_the_flag(office_bag):
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.parametrize("argv, words", [
+    (["alarms", "--frames", "40"], "--frames 40 at --rate 5 Hz is 8 s: drift episodes start after 20 s and last up to "
+                                   "10 s; give --frames 150 or more"),
+    (["plane-quality", "--seed", "3-1"], "no seed in '3-1' (a range runs low-high)"),
+    (["plane-quality", "--scenes", ""], "give at least one scene"),
+    (["alarms", "--estimates", ""], "give at least one value"),
+])
+def test_a_research_run_that_could_hold_nothing_is_refused(tmp_path, argv, words):
+    """An alarms run whose bags are too short for any drift episode ended with '0/0 = nan %' and exit 0; an empty
+    seed range or scene list with an error from numpy, or (plane-quality) an empty table and exit 0."""
+    res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", *argv, "--out", str(tmp_path / "x")],
+                         capture_output=True, text=True)
+    assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_repeated_seeds_count_once():
+    """plane-quality --seed 0,0 counted every plane twice (26/26 for 13/13)."""
+    from topometric_ros.cli import build_parser
+
+    args = build_parser().parse_args(["plane-quality", "--seed", "0,0,2-3,3"])
+    assert args.seed == [0, 2, 3]
+
+
+def test_simulate_writes_into_an_empty_folder_but_not_into_another_bag(office_bag, tmp_path):
+    """An empty folder made for the bag is used (it was 'exists already'); a bag written inside another bag's
+    folder is refused (the reader then takes its files as the outer bag's)."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    base = [sys.executable, "-m", "topometric_ros.cli", "simulate", "--scene", "office1", "--frames", "2"]
+    res = subprocess.run([*base, "--out", str(empty)], capture_output=True, text=True)
+    assert res.returncode == 0 and (empty / "metadata.yaml").is_file(), res.stderr
+    res = subprocess.run([*base, "--out", str(office_bag[0] / "inner")], capture_output=True, text=True)
+    assert res.returncode == 2 and "is inside the bag folder" in res.stderr, res.stderr
+    assert not (office_bag[0] / "inner").exists()
+
+
 def test_an_unknown_option_is_refused_by_its_subcommand_with_the_closest_known_ones():
     """A misspelt option of a subcommand: exit 2 with that subcommand's usage (not the top level's) and the
     options it may have meant."""

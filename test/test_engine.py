@@ -103,3 +103,22 @@ def test_rays_start_up_lines_stay_out_of_the_progress_bar(tmp_path):
     states = [s for s in done.stderr.replace("\n", "\r").split("\r") if "%|" in s]
     assert states and states[-1].startswith("t: 100%"), done.stderr
     assert all(s.rstrip().endswith("]") for s in states), done.stderr  # nothing printed into a bar's line
+
+
+def test_a_cluster_address_that_takes_no_connection_is_refused_at_once():
+    """Ray itself retries an unreachable --address for minutes (warnings naming another address); a closed port
+    is refused in seconds with the address given."""
+    import socket
+    import time
+
+    from topometric_ros.engine import ensure_ray
+
+    with socket.socket() as s:  # a port nothing listens on once this socket closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    started = time.perf_counter()
+    with pytest.raises(ValueError, match=rf"cannot reach a Ray cluster at 127\.0\.0\.1:{port} .*ray start --head"):
+        ensure_ray(address=f"127.0.0.1:{port}")
+    assert time.perf_counter() - started < 10
+    with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
+        ensure_ray(workers=0)

@@ -59,6 +59,53 @@ def test_runs_of_another_setup_are_not_reused_under_a_new_spec(tmp_path):
     assert json.loads((tmp_path / "spec.json").read_text())["frames"] == 100  # left as it was
 
 
+def test_the_shipped_report_is_replaced_only_by_the_same_experiment(tmp_path):
+    """results/ holds the shipped report without its runs: another spec is refused there (it would replace the
+    report), the full experiment is not; a folder without a report takes any spec."""
+    from pathlib import Path
+    from dataclasses import replace
+
+    from topometric_ros.experiments.evaluate import _same_runs
+
+    shipped = Path(__file__).resolve().parents[1] / "results"
+    _same_runs(ExperimentSpec(), shipped)
+    for other in (ExperimentSpec.quick(), replace(ExperimentSpec(), frames=10)):
+        with pytest.raises(ValueError, match="holds the report of another experiment"):
+            _same_runs(other, shipped)
+    _same_runs(ExperimentSpec.quick(), tmp_path)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--frames", "3"], "--frames 3 holds no window of 5 scans"),
+    (["--frames", "8", "--win", "10"], "--frames 8 holds no window of 10 scans"),
+    (["--scenes", ""], "give at least one scene"),
+    (["--noise", ""], "give at least one value"),
+    (["--labels", ""], "give at least one value"),
+])
+def test_an_experiment_that_cannot_run_is_refused_before_any_work(tmp_path, capsys, argv, words):
+    """Each of these ended in a traceback (IndexError) or a numpy message, and left empty run files behind."""
+    out = tmp_path / "ev"
+    assert _exit_code(["evaluate", "--quick", "--engine", "local", "--out", str(out), *argv]) == 2
+    assert words in capsys.readouterr().err
+    assert not out.exists()
+
+
+def _exit_code(argv) -> int:
+    try:
+        return main(argv)
+    except SystemExit as e:  # argparse refuses a bad value itself
+        return e.code
+
+
+def test_another_experiment_is_written_apart_from_the_shipped_report(tmp_path, monkeypatch):
+    """Without --out, only the full experiment writes results/ (the shipped report); any other goes to
+    out/evaluate."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["evaluate", "--scenes", "office1", "--trajectories", "1", "--frames", "5", "--win", "5", "--noise",
+                 "r", "--scales", "1", "--labels", "gt", "--baseline-windows", "1", "--engine", "local"]) == 0
+    assert (tmp_path / "out" / "evaluate" / "REPORT.md").is_file() and not (tmp_path / "results").exists()
+
+
 def test_a_claim_without_the_numbers_to_judge_it_is_undefined_not_holding():
     """Spearman NaN for the claimed metric (no baselines, a 1-scan window): no verdict, and the metrics that
     were not measured are not counted as compared."""

@@ -195,6 +195,50 @@ def test_blend_writes_mixed_weights_and_refuses_another_network_or_a_bad_alpha(t
     assert e.value.code == 2 and "expected a number within [0, 1], got '2'" in capsys.readouterr().err
 
 
+def test_blend_refuses_to_write_over_the_weights_it_reads(trained, office_bag, tmp_path, capsys):
+    """--out the tuned weights' own folder would replace them with the blend (a rerun then blends a blend)."""
+    rc, out = trained
+    tuned = out / "w" / "rangenet.pt"
+    before = tuned.read_bytes()
+    assert main(["blend", str(tuned), str(tuned), "--out", str(out / "w")]) == 2
+    assert "holds the parent weights" in capsys.readouterr().err and tuned.read_bytes() == before
+    assert main(["eval-seg", str(office_bag[0]), "--weights", str(out / "w"), "--out", str(tmp_path / "e")]) == 2
+    assert f"is a folder; give the weights file in it ({out / 'w' / 'rangenet.pt'})" in capsys.readouterr().err
+
+
+def _exit_code(argv) -> int:
+    try:
+        return main(argv)
+    except SystemExit as e:  # argparse refuses a bad value itself
+        return e.code
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--widths", "8,8"], "--widths: expected 3 whole numbers > 0 separated by commas, got '8,8'"),
+    (["--widths", "0,8,8"], "--widths: expected 3 whole numbers > 0"),
+    (["--widths", "abc"], "--widths: expected 3 whole numbers > 0"),
+    (["--context", "0,0"], "--context: expected 2 whole numbers > 0"),
+    (["--context", "2"], "--context: expected 2 whole numbers > 0"),
+    (["--init", "missing.pt"], "segmentation weights not found: missing.pt"),
+])
+def test_train_refuses_a_bad_network_or_start_before_building_the_cache(office_bag, tmp_path, capsys, extra, words):
+    """Each was a torch traceback, an unpacking error that named no option, or (--init) a failure after the
+    projected-scan cache was built (minutes to hours on a real training set)."""
+    bag, _ = office_bag
+    assert _exit_code(["train", str(bag), "--out", str(tmp_path / "w"), "--cache", str(tmp_path / "cache"),
+                       *extra]) == 2
+    assert words in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "w").exists()
+
+
+def test_train_refuses_a_cache_inside_a_bag(office_bag, tmp_path, capsys):
+    bag, _ = office_bag
+    before = sorted(p.name for p in bag.iterdir())
+    assert main(["train", str(bag), "--out", str(tmp_path / "w"), "--cache", str(bag / "cache")]) == 2
+    assert f"--cache {bag / 'cache'} is inside the bag folder" in capsys.readouterr().err
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
 def test_train_without_progress_draws_no_bars(office_bag, tmp_path, capsys):
     from topometric_ros.segmentation.train import TrainConfig, train
 

@@ -313,6 +313,8 @@ class BagWriter:
         if storage not in STORAGES:
             raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
         self.path = Path(path)
+        if self.path.is_dir() and not any(self.path.iterdir()):
+            self.path.rmdir()  # an empty folder made for it: the writer makes the bag folder itself
         if self.path.exists():
             raise BagError(f"{self.path} exists already; choose a new output path or remove it")
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
@@ -373,7 +375,14 @@ def zstd_chunks(file: Path) -> None:
     tmp.replace(file)
 
 
+def truth_path(bag_path: str | Path) -> Path:
+    """Where a simulated bag keeps its truth.json: in the bag folder (the folder of a bag given as its .mcap or
+    .db3 file)."""
+    p = Path(bag_path)
+    return (p.parent if p.is_file() else p) / "truth.json"
+
+
 def load_truth(bag_path: str | Path) -> dict | None:
-    """The truth.json a simulated bag folder carries (settings, drift episodes), or None for other bags."""
-    p = Path(bag_path) / "truth.json"
+    """The truth.json a simulated bag carries (settings, drift episodes), or None for other bags."""
+    p = truth_path(bag_path)
     return json.loads(p.read_text()) if p.exists() else None

@@ -19,8 +19,9 @@ def _scenes(text: str) -> list[str]:
 
     names = [s.strip() for s in text.split(",") if s.strip()]
     bad = [s for s in names if s not in SCENES]
-    if bad:
-        raise argparse.ArgumentTypeError(f"unknown scene(s) {', '.join(bad)}; choose from {', '.join(SCENES)}")
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"unknown scene(s) {', '.join(bad)}; choose from {', '.join(SCENES)}" if bad
+                                         else f"give at least one scene: {', '.join(SCENES)}")
     return names
 
 
@@ -280,10 +281,22 @@ def _alarms_mode_options(args: argparse.Namespace) -> str:
     return "; ".join(problems)
 
 
+def _too_short_for_an_episode(frames: int, rate: float) -> str:
+    """Why drift bags of ``frames`` scans at ``rate`` Hz can hold no drift episode ("" when they can)."""
+    from .sim.drift import EPISODE_LENGTH_S, EPISODE_WARMUP_S
+
+    need = EPISODE_WARMUP_S + EPISODE_LENGTH_S[1]
+    if frames / rate >= need:
+        return ""
+    return (f"--frames {frames} at --rate {rate:g} Hz is {frames / rate:g} s: drift episodes start after "
+            f"{EPISODE_WARMUP_S:g} s and last up to {EPISODE_LENGTH_S[1]:g} s; give --frames {math.ceil(need * rate)} "
+            "or more")
+
+
 def cmd_alarms(args: argparse.Namespace) -> int:
     from .experiments.alarms import SCALES, calibrate, format_calibration, format_detection, run_detection
 
-    mismatch = _alarms_mode_options(args)
+    mismatch = _alarms_mode_options(args) or _too_short_for_an_episode(args.frames, args.rate)
     if mismatch:
         print(f"error: {mismatch}", file=sys.stderr)
         return 2
@@ -434,7 +447,24 @@ def _model_share(text: str) -> tuple:
 
 
 def _words(text: str) -> tuple:
-    return tuple(x.strip() for x in text.split(",") if x.strip())
+    """A comma list of one word or more (argparse type)."""
+    words = tuple(x.strip() for x in text.split(",") if x.strip())
+    if not words:
+        raise argparse.ArgumentTypeError(f"give at least one value, got {text!r}")
+    return words
+
+
+def _whole_numbers(count: int):
+    """An argparse type: a comma list of exactly ``count`` whole numbers > 0."""
+    def parse(text: str) -> tuple:
+        try:
+            values = tuple(int(x) for x in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) != count or min(values) < 1:
+            raise argparse.ArgumentTypeError(f"expected {count} whole numbers > 0 separated by commas, got {text!r}")
+        return values
+    return parse
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -453,7 +483,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if bad:
         print(f"error: unknown noise mode or label source: {', '.join(bad)}", file=sys.stderr)
         return 2
-    out = args.out or ("out/evaluate_quick" if args.quick else "results")
+    if spec.frames < max(spec.windows):
+        raise ValueError(f"--frames {spec.frames} holds no window of {max(spec.windows)} scans (--win); give at least "
+                         f"{max(spec.windows)}")
+    # results/ is the shipped report: only the full experiment writes there by default
+    out = args.out or ("out/evaluate_quick" if args.quick else "results" if spec == ExperimentSpec() else "out/evaluate")
     paths = run(spec, out, workers=args.workers, engine=args.engine, address=args.address or None)
     print(Path(paths["report"]).read_text())
     print(f"wrote {out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s; {paths['reused']} of "
@@ -470,13 +504,16 @@ def _seeds(text: str) -> list[int]:
             out += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
     except ValueError:
         raise argparse.ArgumentTypeError(f"seeds must look like 0 or 0,3,5 or 0-6, got {text!r}") from None
-    return out
+    if not out:
+        raise argparse.ArgumentTypeError(f"no seed in {text!r} (a range runs low-high)")
+    return list(dict.fromkeys(out))  # each seed once: a repeated one would count its planes twice
 
 
 def cmd_plane_quality(args: argparse.Namespace) -> int:
     import csv
 
     from .experiments.plane_quality import evaluate_detector, plot_plane_quality
+    from .reports import write_json
 
     cfg = _planes_config(args)
     out = Path(args.out)
@@ -492,7 +529,7 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     for name in args.sensor:
         res = evaluate_detector(args.scenes, args.frames, cfg, args.seed, sensor=name)
         stem = out / f"plane_quality_{cfg.detector}" if len(args.sensor) == 1 else out / f"plane_quality_{cfg.detector}_{name}"
-        stem.with_suffix(".json").write_text(json.dumps(res, indent=2))
+        write_json(stem.with_suffix(".json"), res, indent=2)
         for scene, r in res["scenes"].items():
             rows.append((name, scene) + tuple(r[c] for c in cols))
             print(f"{name:8s} {scene:10s} {r['recall']:8.3f} {r['worst_recall']:6.3f} {r['recalled']:5d}/{r['truth']:<5d} "
@@ -514,10 +551,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(epochs=args.epochs, crops_per_epoch=args.crops, batch=args.batch, crop_width=args.crop_width,
                       lr=args.lr, every=args.every, seed=args.seed, threads=args.threads, max_minutes=args.max_minutes,
                       device=args.device, workers=args.workers, shares=dict(args.share))
-    spec = ModelSpec(widths=tuple(int(w) for w in args.widths.split(",")),
-                     context=tuple(int(d) for d in args.context.split(",")))
+    spec = ModelSpec(widths=args.widths, context=args.context)
     bags = find_bags(args.bags)
     val = find_bags(args.val) if args.val else []
+    _refuse_inside_bags("--cache", args.cache, bags + val)
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
     card = train(bags, args.out, cfg, spec, val, args.cache, args.command_line, init=args.init or None)
     val_m = card["metrics"].get("val", {})
@@ -550,7 +587,8 @@ def cmd_quantize(args: argparse.Namespace) -> int:
 
     bags = find_bags(args.bags)
     path = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
-    print(f"wrote {path} (activation ranges of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
+    print(f"wrote {path}{'' if args.weights else ' (the shipped weights: their ranges replaced)'} (activation ranges "
+          f"of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
     return 0
 
 
@@ -687,8 +725,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--crop-width", type=_positive, default=480, help="azimuth columns per crop")
     t.add_argument("--lr", type=_non_negative, default=4e-3, help="learning rate")
     t.add_argument("--every", type=_positive, default=3, help="use every n-th scan of each bag")
-    t.add_argument("--widths", default="32,48,64", help="channel widths of the three levels")
-    t.add_argument("--context", default="2,4", help="azimuth dilations of the two coarsest residual blocks")
+    t.add_argument("--widths", type=_whole_numbers(3), default="32,48,64", help="channel widths of the three levels")
+    t.add_argument("--context", type=_whole_numbers(2), default="2,4",
+                   help="azimuth dilations of the two coarsest residual blocks")
     t.add_argument("--max-minutes", type=_non_negative, default=0.0,
                    help="stop training after this many minutes (0 = run all epochs); keeps the best-val epoch")
     t.add_argument("--seed", type=int, default=0, help="crop and initialisation seed")
@@ -857,7 +896,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_engine_args(e)
     e.add_argument("--quick", action="store_true", help="a tiny run (office1, one trajectory, window 5, gt labels)")
     e.add_argument("--out", default="", help="output directory; finished settings are reused (\"\": results, the "
-                                             "shipped report; with --quick out/evaluate_quick)")
+                                             "shipped report, for the full experiment; out/evaluate for any other, "
+                                             "out/evaluate_quick with --quick)")
     e.set_defaults(func=cmd_evaluate)
 
     q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")
@@ -881,6 +921,18 @@ def _terminated(signum, frame) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+def _refuse_inside_bags(flag: str, folder: str, bags) -> None:
+    """ValueError when ``folder`` is one of ``bags`` or lies inside one: what is written there would sit among the
+    bag's files, which the next read takes as part of the bag."""
+    real = Path(folder).resolve()
+    for given in bags:
+        source = Path(given).resolve()
+        source = source.parent if source.is_file() else source
+        if real == source or source in real.parents:
+            raise ValueError(f"{flag} {folder} is {'the' if real == source else 'inside the'} bag folder {given}; "
+                             "give a folder outside it")
+
+
 def _check_out(args: argparse.Namespace) -> None:
     """--out must be a folder, or one that can be made where it is named: ValueError otherwise, before any work
     starts (nothing is made here)."""
@@ -897,12 +949,15 @@ def _check_out(args: argparse.Namespace) -> None:
     for given in filter(None, inputs):
         source = Path(given).resolve()
         if source.is_file() and real == source.parent:  # a .mcap / .db3 file: not into its own folder
-            raise ValueError(f"--out {out} is the folder of the bag file {given}: the reports (a diagnostics.mcap among "
-                             "them) would sit beside it; give another folder")
+            raise ValueError(f"--out {out} is the folder of the bag file {given}: what the command writes would sit "
+                             "beside it, and the next read takes it as part of the bag; give another folder")
         if source.is_dir() and not bag.not_a_bag(source) and (real == source or source in real.parents):
-            raise ValueError(f"--out {out} is {'the' if real == source else 'inside the'} bag folder {given}: the "
-                             "reports (a diagnostics.mcap among them) would be written into the bag; give a folder "
-                             "outside it")
+            raise ValueError(f"--out {out} is {'the' if real == source else 'inside the'} bag folder {given}: what "
+                             "the command writes would be written into the bag; give a folder outside it")
+    holder = next((p for p in real.parents if (p / "metadata.yaml").is_file() and not bag.not_a_bag(p)), None)
+    if holder is not None:  # any command's output inside a bag folder (simulate's new bag among another's files)
+        raise ValueError(f"--out {out} is inside the bag folder {holder}: what the command writes would be written into "
+                         "the bag; give a folder outside it")
     above = next(p for p in path.parents if p.exists())
     if not path.exists() and not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise ValueError(f"--out {out}: cannot make a folder in {above}"

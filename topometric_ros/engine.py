@@ -99,8 +99,8 @@ def run_tasks(fn: Callable, items: Iterable, engine: str = "ray", workers: int =
 
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
-    if engine == "ray" and not address and workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    if engine == "ray":
+        _check_workers(workers, address)
     items = list(items)
     shared = dict(shared or {})
     if engine == "ray" and items:
@@ -138,6 +138,7 @@ def ensure_ray(workers: int = 2, address: str | None = None) -> None:
     the caller (``ray.init`` before) is used as it is."""
     import ray
 
+    _check_workers(workers, address)
     key = (address or None, None if address else int(workers))
     if ray.is_initialized():
         if not _RAY or _RAY.get("key") == key:
@@ -145,11 +146,33 @@ def ensure_ray(workers: int = 2, address: str | None = None) -> None:
         ray.shutdown()
     common = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
     if address:
+        _check_reachable(address)
         ray.init(address=address, **common)
     else:  # "local": a new local Ray even when a cluster runs on this machine
         ray.init(address="local", num_cpus=int(workers), _node_ip_address="127.0.0.1",
                  object_store_memory=256 * 1024 * 1024, **common)
     _RAY["key"] = key
+
+
+def _check_workers(workers: int, address: str | None) -> None:
+    """A local Ray needs one worker or more (a cluster at ``address`` brings its own)."""
+    if not address and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """ValueError when a HOST:PORT cluster address takes no connection within ``timeout_s`` (Ray itself retries
+    for minutes); 'auto' and ray:// addresses are left to Ray."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    if not sep or "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise ValueError(f"cannot reach a Ray cluster at {address} ({e.strerror or e}): start one there with "
+                         "`ray start --head`, or leave --address out for a local Ray") from None
 
 
 def shutdown() -> None:

@@ -220,7 +220,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                    layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
     summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
     summary["clock_faults"] = rec.clock_faults
-    write_reports(out, records, summary, truth=_truth(bag_path), plot=opt.plot)
+    write_reports(out, records, summary, truth=bag.load_truth(bag_path), plot=opt.plot)
     return ReplayResult(out, records, summary)
 
 
@@ -437,11 +437,6 @@ def _resolve_topics(path, opt: ReplayOptions, notes: list[str]) -> tuple[ReplayO
         notes.append(f"ground-truth topic {opt.gt_topic} is not in the bag: no RPE (its Odometry topics: "
                      f"{', '.join(_of_type(topics, bag.ODOMETRY)) or 'none'})")
     return with_(opt, points_topic=points, odom_topic=odom), topics
-
-
-def _truth(path) -> dict | None:
-    p = Path(path)
-    return bag.load_truth(p if p.is_dir() else p.parent)
 
 
 def _add_rpe(records, window_poses, gt_stamps, gt_poses, extrinsic) -> None:

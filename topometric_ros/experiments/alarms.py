@@ -634,7 +634,7 @@ def _write_calibration(out: Path, doc: dict) -> None:
     from ..reports import pyplot, write_csv
 
     out.mkdir(parents=True, exist_ok=True)
-    (out / "calibration.json").write_text(json.dumps(doc, indent=1))
+    write_json(out / "calibration.json", doc)
     write_csv(out / "calibration.csv", doc["sweep"])
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2))
@@ -693,7 +693,7 @@ def format_calibration(doc: dict) -> str:
 
 def _write(out: Path, table: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    (out / "detection.json").write_text(json.dumps(table, indent=1))
+    write_json(out / "detection.json", table)
     with open(out / "detection.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["bag", "mode", "scale", "episodes", "detected", "latencies"])

@@ -231,10 +231,12 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
         address: str | None = None) -> dict:
     """Run (or resume) the experiment into ``out``; returns the paths of what it wrote. The jobs run on
     engine.run_tasks (``engine``, ``workers``, ``address``)."""
-    from ..engine import run_tasks
+    from ..engine import ensure_ray, run_tasks
 
     out = Path(out)
     _same_runs(spec, out)
+    if engine == "ray":
+        ensure_ray(workers, address)  # an unreachable cluster is refused before anything is written
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.json").write_text(json.dumps(asdict(spec), indent=2))
     started = time.perf_counter()
@@ -259,9 +261,14 @@ def _same_runs(spec: ExperimentSpec, out: Path) -> None:
     """ValueError when ``out`` holds runs made with other RUN_SHAPING settings: reusing them would report
     the old numbers under the new spec."""
     path = out / "spec.json"
-    if not path.is_file() or not (out / "runs").is_dir():
+    if not path.is_file():
         return
     old = json.loads(path.read_text())
+    if not (out / "runs").is_dir():  # a report without its runs (the shipped results/): only the same experiment
+        if (out / "REPORT.md").is_file() and old != json.loads(json.dumps(asdict(spec))):
+            raise ValueError(f"{out} holds the report of another experiment ({path}) without its runs: give another "
+                             "--out, or remove it to replace that report")
+        return
     differ = [f"{k} {old.get(k)!r} (now {getattr(spec, k)!r})" for k in RUN_SHAPING if old.get(k) != getattr(spec, k)]
     if differ:
         raise ValueError(f"{out} holds runs made with {', '.join(differ)}: give another --out, or remove {out} to "

@@ -49,6 +49,9 @@ def one_line_reason(e: Exception) -> str:
 def load_weights(path: str | Path) -> tuple[dict, dict]:
     """(model card, state dict) of a weights file, loaded without executing code."""
     path = Path(path)
+    if path.is_dir():
+        raise SegmentationError(f"segmentation weights {path} is a folder; give the weights file in it "
+                                f"({path / WEIGHTS_NAME})")
     if not path.is_file():
         raise SegmentationError(f"segmentation weights not found: {path}")
     try:
@@ -187,6 +190,11 @@ def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str 
     and its validation result dropped (it was the tuned weights'). Returns the path."""
     if not 0.0 <= alpha <= 1.0:
         raise SegmentationError(f"blend alpha must be within [0, 1], got {alpha}")
+    target = (Path(out) / WEIGHTS_NAME).resolve()
+    for role, given in (("parent", parent), ("tuned", tuned)):
+        if Path(given).resolve() == target:
+            raise SegmentationError(f"the output folder {out} holds the {role} weights {given}: the blend would replace "
+                                    "them; give another folder")
     card_p, state_p = load_weights(parent)
     card_t, state_t = load_weights(tuned)
     if card_p.get("model") != card_t.get("model"):

@@ -49,12 +49,18 @@ def read_scans(bag_path: str | Path, topic: str = "", every: int = 1, limit: int
 
 def scene_of(bag_path: str | Path) -> str:
     """The scene a bag shows: from its truth.json (simulated bags), else the folder name."""
-    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("scene", Path(bag_path).name))
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("scene", _name(bag_path)))
 
 
 def sensor_of(bag_path: str | Path) -> str:
     """The sensor model a simulated bag was made with (truth.json), else the folder name."""
-    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("sensor", Path(bag_path).name))
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("sensor", _name(bag_path)))
+
+
+def _name(bag_path: str | Path) -> str:
+    """A bag's name: its folder's, or its file's without the extension (a bag given as its .mcap)."""
+    p = Path(bag_path)
+    return p.stem if p.is_file() else p.name
 
 
 def scan_images(scan: LabelledScan) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +78,7 @@ def cache_key(bags: Sequence[str | Path], every: int) -> str:
     h = hashlib.sha256(f"grid images v3|{every}".encode())  # v3: non-repetitive images of finer columns
     for b in sorted(str(Path(p).resolve()) for p in bags):
         h.update(b.encode())
-        truth = Path(b) / "truth.json"
+        truth = bag.truth_path(b)
         if truth.exists():
             h.update(truth.read_bytes())
     return h.hexdigest()[:12]

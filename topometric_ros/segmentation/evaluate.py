@@ -6,7 +6,6 @@ of segmentation including projection and back-projection (median over scans).
 """
 from __future__ import annotations
 
-import json
 import statistics
 import time
 from pathlib import Path
@@ -15,7 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from .. import classes as C
-from ..reports import write_csv
+from ..reports import write_csv, write_json
 from .data import read_scans, scene_of, sensor_of
 from .metrics import accuracy, confusion, iou_per_class, miou
 
@@ -102,7 +101,7 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
     speed["per_sensor_median_ms"] = {k: round(statistics.median(v), 2) for k, v in result.get("sensor_ms", {}).items()}
     metrics = {"title": title, "rows": rows, "confusion": conf.tolist(), "classes": list(C.NAMES),
                "speed": speed}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_json(out / "metrics.json", metrics, indent=2)
     return metrics
 
 

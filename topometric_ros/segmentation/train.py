@@ -24,6 +24,7 @@ import torch
 from torch.nn import functional as F
 
 from .. import classes as C
+from ..reports import write_json
 from .checkpoint import FORMAT_VERSION, build_model, load_weights, save_weights, state_digest, torch_device
 from .data import load_or_build_cache
 from .metrics import confusion, iou_per_class, miou
@@ -304,6 +305,8 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     t0 = time.perf_counter()
     if cfg.crop_width % (2 * spec.fold):
         raise ValueError(f"crop_width {cfg.crop_width} must be a multiple of {2 * spec.fold}")
+    if init:  # checked before the cache is built (minutes to hours on a real training set)
+        init_card, init_state = load_weights(init)
     dev = training_device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -319,7 +322,6 @@ def train(bags: Sequence[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     val_groups = list(val.values()) if val is not None else None
     weights = torch.from_numpy(class_weights(np.concatenate([g["labels"].reshape(-1) for g in groups])))
     if init:
-        init_card, init_state = load_weights(init)
         model, started = build_model(init_card, init_state, str(init)), init_record(init, init_card, init_state)
         spec = model.spec
     else:
@@ -419,7 +421,7 @@ def _train_loop(model: RangeNet, weights: torch.Tensor, groups: Sequence[dict], 
         val_text = f" val mIoU {100 * entry['val_miou']:.2f}" if "val_miou" in entry else ""
         tqdm.write(f"epoch {epoch + 1:2d}: loss {entry['loss']:.4f} train mIoU {100 * entry['train_miou']:.2f}"
                    f"{val_text} ({entry['seconds']:.0f} s)")
-        (out / "train_log.json").write_text(json.dumps(history, indent=2))
+        write_json(out / "train_log.json", history, indent=2)
     selected = 0
     model = model.cpu()
     if best_state is not None:

@@ -76,8 +76,12 @@ class Episode:
         return asdict(self)
 
 
-def plan_episodes(t0: float, t1: float, spec: DriftSpec, rng: np.random.Generator, warmup: float = 20.0,
-                  length: tuple = (6.0, 10.0), gap: tuple = (15.0, 25.0)) -> list[Episode]:
+EPISODE_WARMUP_S = 20.0  # s of a bag before its first drift episode (the monitor's baselines are learned there)
+EPISODE_LENGTH_S = (6.0, 10.0)  # s, shortest and longest episode
+
+
+def plan_episodes(t0: float, t1: float, spec: DriftSpec, rng: np.random.Generator, warmup: float = EPISODE_WARMUP_S,
+                  length: tuple = EPISODE_LENGTH_S, gap: tuple = (15.0, 25.0)) -> list[Episode]:
     """Episodes in [t0 + warmup, t1): random lengths and clean gaps (s). None for mode 'none' or kind noise."""
     if spec.mode == "none" or spec.kind != "episodes":
         return []

@@ -20,7 +20,8 @@ from .. import bag, classes, geometry
 from ..cloud import DATATYPES as DATATYPES_NP, make_layout_cloud, rosbags_types
 from ..reports import written_whole
 from ..sensors import DEFAULT_SENSOR, SensorModel, sensor
-from .drift import DriftSpec, OdometryError, estimated_poses, odometry_error, plan_episodes
+from .drift import (EPISODE_LENGTH_S, EPISODE_WARMUP_S, DriftSpec, OdometryError, estimated_poses, odometry_error,
+                    plan_episodes)
 from .lidar import Lidar, Scan, firings_per_sweep
 from .scenes import make_scene
 from .trajectory import random_trajectory
@@ -241,7 +242,7 @@ def format_summary(s: dict) -> str:
               for i, e in enumerate(s["episodes"])]
     drift = s["config"]["drift"]
     if drift["mode"] != "none" and drift["kind"] == "episodes" and not s["episodes"]:
-        lines.append("  NO EPISODE FITS: episodes start after 20 s and last 6-10 s; give more --frames, or "
-                     "--drift-kind noise (drift from the first scan)")
+        lines.append(f"  NO EPISODE FITS: episodes start after {EPISODE_WARMUP_S:g} s and last {EPISODE_LENGTH_S[0]:g}-"
+                     f"{EPISODE_LENGTH_S[1]:g} s; give more --frames, or --drift-kind noise (drift from the first scan)")
     lines.append(f"elapsed        {s['elapsed_s']:.1f} s")
     return "\n".join(lines)
