@@ -82,6 +82,8 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["simulate", "--split", "--train", "0", "--test", "0", "--out", "x"], "writes no bag"),
                         (["evaluate", "--scales", "0"], "argument --scales: expected numbers > 0, got '0'"),
                         (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
+                        (["simulate", "--rate", "1000", "--out", "x"],
+                         "--rate 1000 is more scans a second than the sensor makes (VLP-32C sweeps 10 times a second)"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
                         (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb"),

@@ -91,7 +91,9 @@ def test_quantize_calibrates_trained_weights_for_int8_and_eval_seg_says_which_ra
     assert main([*args, "--out", str(tmp_path / "before")]) == 0
     assert "float32 network" in capsys.readouterr().out  # no ranges yet: float32, with the reason logged
     assert main(["quantize", str(bag), "--weights", str(weights), "--every", "5"]) == 0
-    assert "rangenet.int8.json" in capsys.readouterr().out and (tmp_path / "rangenet.int8.json").is_file()
+    said = capsys.readouterr().out
+    assert "rangenet.int8.json" in said and (tmp_path / "rangenet.int8.json").is_file()
+    assert "activation ranges of 6 range images" in said and "note: 6 range image(s) are few" in said  # 30 scans / 5
     assert main([*args, "--out", str(tmp_path / "after")]) == 0
     assert "int8 network" in capsys.readouterr().out
 
@@ -108,12 +110,13 @@ def test_eval_seg_with_tampered_weights_is_a_clear_error(trained, office_bag, tm
     assert err.startswith("error:") and ("checksum mismatch" in err or "not a safe torch weights file" in err)
 
 
-def test_train_with_validation_keeps_the_best_epoch_and_stops_at_the_time_budget(office_bag, tmp_path):
+def test_train_with_validation_keeps_the_best_epoch_and_stops_at_the_time_budget(office_bag, tmp_path, capsys):
     bag, _ = office_bag
     out = tmp_path / "w"
     assert main(["train", str(bag), "--val", str(bag), "--epochs", "3", "--crops", "6", "--batch", "6",
                  "--every", "10", "--seed", "1", "--context", "4,8", "--max-minutes", "60",
                  "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
+    assert "note: 1 validation bag(s) are training bags too (office1_rt)" in capsys.readouterr().out
     card = json.loads((out / "model_card.json").read_text())
     hist = card["training"]["history"]
     best = max(range(len(hist)), key=lambda i: (hist[i]["val_miou"], i))  # ties: the later epoch
@@ -248,3 +251,11 @@ def test_train_without_progress_draws_no_bars(office_bag, tmp_path, capsys):
     assert len(card["training"]["history"]) == 1
     err = capsys.readouterr().err
     assert "epoch 1/1" not in err and "cache bags" not in err, err  # the per-step bar and the cache bar
+
+
+def test_eval_seg_of_one_scan_says_its_speed_was_not_measured(trained, office_bag, tmp_path, capsys):
+    """Each sensor's first scan is warm-up: with one scan the speed line used to vanish without a word."""
+    rc, out = trained
+    assert main(["eval-seg", str(office_bag[0]), "--weights", str(out / "w" / "rangenet.pt"), "--limit", "1",
+                 "--out", str(tmp_path / "e")]) == 0
+    assert "speed: not measured (each sensor's first scan is left out as warm-up" in capsys.readouterr().out

@@ -61,6 +61,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.split and args.train + args.test == 0:
         print("error: --split with --train 0 and --test 0 writes no bag", file=sys.stderr)
         return 2
+    from .sensors import sensor
+
+    fast = [f"{n} sweeps {sensor(n).rate_hz:g} times a second" for n in args.sensor if args.rate > sensor(n).rate_hz]
+    if fast:
+        print(f"error: --rate {args.rate:g} is more scans a second than the sensor makes ({'; '.join(fast)}): one scan "
+              "per sweep at most", file=sys.stderr)
+        return 2
     for name in args.sensor:
         target = out / name if len(args.sensor) > 1 else out
         cfg = replace(_sim_config(args, args.scene[0]), sensor=name)
@@ -521,7 +528,8 @@ def cmd_plane_quality(args: argparse.Namespace) -> int:
     cols = ("recall", "worst_recall", "truth", "recalled", "surface_recall", "surface_truth", "median_purity",
             "min_purity", "surface_purity", "planes_per_scan", "ms_per_scan")
     rows = []
-    print(f"detector {cfg.detector}, {args.frames} scans per scene and trajectory seed {args.seed}, ground-truth "
+    print(f"detector {cfg.detector}, {args.frames} scans per scene and trajectory seed "
+          f"{', '.join(map(str, args.seed))}, ground-truth "
           "planes: instances (and surfaces: touching coplanar instances as one) with >= 200 points; "
           "recall pooled over the seeds")
     print(f"{'sensor':8s} {'scene':10s} {'recall':>8s} {'worst':>6s} {'planes':>11s} {'surface':>8s} {'med.purity':>11s} "
@@ -556,6 +564,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     val = find_bags(args.val) if args.val else []
     _refuse_inside_bags("--cache", args.cache, bags + val)
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
+    both = {Path(b).resolve() for b in bags} & {Path(b).resolve() for b in val}
+    if both:
+        print(f"note: {len(both)} validation bag(s) are training bags too ({', '.join(sorted(p.name for p in both))}): "
+              "the epoch kept is chosen on data it trained on")
     card = train(bags, args.out, cfg, spec, val, args.cache, args.command_line, init=args.init or None)
     val_m = card["metrics"].get("val", {})
     if "val_miou" in val_m:
@@ -580,15 +592,21 @@ def _quantize_hint(weights) -> None:
     print(f"for non-repetitive (Livox-like) scans: topometric norm-stats <their training bags> --weights {weights}")
 
 
+FEW_CALIBRATION_IMAGES = 8  # range images under which quantize and norm-stats say their estimate rests on few
+
+
 def cmd_quantize(args: argparse.Namespace) -> int:
     from .segmentation.checkpoint import SHIPPED
     from .audit import find_bags
     from .segmentation.quantize import make_ranges
 
     bags = find_bags(args.bags)
-    path = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
+    path, images = make_ranges(bags, args.weights or SHIPPED, args.every, args.command_line)
     print(f"wrote {path}{'' if args.weights else ' (the shipped weights: their ranges replaced)'} (activation ranges "
-          f"of {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
+          f"of {images} range images from {len(bags)} bag(s); segmentation.precision int8 or auto uses them)")
+    if images < FEW_CALIBRATION_IMAGES:
+        print(f"note: {images} range image(s) are few for activation ranges; give more scans (--every lower, more "
+              "bags)")
     return 0
 
 
@@ -602,6 +620,9 @@ def cmd_norm_stats(args: argparse.Namespace) -> int:
     print(f"wrote {path}{'' if args.weights else ' (the shipped weights: their statistics replaced)'}: BatchNorm "
           f"statistics of {images} non-repetitive range images from {used} of {len(bags)} bag(s); the segmenter "
           f"uses them for non-repetitive scans")
+    if images < FEW_CALIBRATION_IMAGES:
+        print(f"note: {images} range image(s) are few for BatchNorm statistics; give more scans (--every lower, "
+              "more bags)")
     return 0
 
 
@@ -634,6 +655,8 @@ def cmd_eval_seg(args: argparse.Namespace) -> int:
               f"{f'objects within {args.object_gap} m' if args.object_gap else 'no object labels'}, "
               f"{f'non-repetitive floor snap {args.floor_snap} m' if args.floor_snap else 'no floor snap'}, "
               f"{segmenter.precision if segmenter else 'no'} network, projection + network + back-projection)")
+    elif segmenter is not None:
+        print("speed: not measured (each sensor's first scan is left out as warm-up, and no other was scored)")
     if segmenter is not None and result["non_repetitive"]:
         print(f"non-repetitive scans: {result['non_repetitive']}, with "
               + ("their own BatchNorm statistics (rangenet.norm.json)" if segmenter.has_pattern_stats else
@@ -690,7 +713,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
     s.add_argument("--frames", type=_positive, default=600, help="scans per bag")
-    s.add_argument("--rate", type=_positive_number, default=5.0, help="scans per second (5 or 10)")
+    s.add_argument("--rate", type=_positive_number, default=5.0,
+                   help="scans per second, at most the sensor's sweep rate (10 = every sweep of a 10 Hz sensor)")
     s.add_argument("--odom-rate", type=_positive_number, default=20.0, help="odometry messages per second")
     s.add_argument("--speed", type=_non_negative, default=1.2, help="robot speed m/s")
     s.add_argument("--drift", default="none", help="MODE[:SCALE], MODE in none, r, t, rt (e.g. rt:1.5)")
@@ -717,7 +741,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train the segmentation network on labelled bags (simulated train split)")
     t.add_argument("bags", nargs="+", help="bags, or folders with bags anywhere below (e.g. data/sim/train)")
-    t.add_argument("--val", nargs="*", default=[], help="validation bags (scored every epoch; the epoch of best mIoU on them is saved)")
+    t.add_argument("--val", nargs="*", default=[], help="validation bags (scored every epoch; the epoch of best mIoU on "
+                                                        "them is saved); give it after the training bags")
     t.add_argument("--out", default="out/train", help="output folder for rangenet.pt and model_card.json")
     t.add_argument("--epochs", type=_positive, default=12, help="passes over the crops")
     t.add_argument("--crops", type=_positive, default=768, help="random azimuth crops per epoch")

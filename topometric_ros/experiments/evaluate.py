@@ -518,7 +518,7 @@ def claims(spec: ExperimentSpec, tables: dict, labels: str) -> list[str]:
                 else:
                     verdict = "holds" if max(measured, key=measured.get) == best else "does NOT hold"
                 lines.append(f"- noise {noise} ×{scale:g}, windows {pool}: {best.upper()} has the highest Spearman of "
-                             f"{'/'.join(m.upper() for m in measured) or 'none measured'} — {verdict} "
+                             f"{'/'.join(m.upper() for m in measured) or 'the metrics (none measured)'} — {verdict} "
                              f"({', '.join(f'{m.upper()} {_fmt(v)}' for m, v in rows.items())})")
     for r in tables["multirelation"]:
         if r["labels"] == labels and r["noise"] == "rt":
@@ -556,7 +556,8 @@ MR_COLUMNS = ["labels", "noise", "scale", "windows", "n", "mr_pne_cpv_rpe", "mr_
 def _data_section(spec: ExperimentSpec) -> list[str]:
     """What was run: scenes, trajectories, noise model, baselines subset, pooling of windows."""
     scales = ", ".join(f"{s:g}" for s in spec.scales)
-    return [f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} trajectories "
+    return [f"Data: simulated VLP-32C scans (5 Hz) in {', '.join(spec.scenes)}, {spec.trajectories} "
+            f"{'trajectory' if spec.trajectories == 1 else 'trajectories'} "
             f"each (seeds {TRAJECTORY_SEED0}..), {spec.frames} scans per trajectory. Windows of "
             f"{', '.join(map(str, spec.windows))} scans, step = size; correlations at window "
             f"{spec.correlation_window}.",

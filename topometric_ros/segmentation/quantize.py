@@ -61,9 +61,10 @@ def int8_nodes(model) -> list[str]:
     return [n.name for n in model.graph.node if n.name.split("/")[1:2] and n.name.split("/")[1] in INT8_MODULES]
 
 
-def make_ranges(bags: Sequence[str | Path], weights: str | Path, every: int = 2, command: str = "") -> Path:
+def make_ranges(bags: Sequence[str | Path], weights: str | Path, every: int = 2,
+                command: str = "") -> tuple[Path, int]:
     """Calibrate the int8 network of ``weights`` on every ``every``-th scan of ``bags`` (any sensors) and save
-    the ranges beside the weights (:func:`write_ranges`); returns the path."""
+    the ranges beside the weights (:func:`write_ranges`); returns (the path, the range images calibrated on)."""
     from tqdm import tqdm
 
     from .data import read_scans
@@ -71,7 +72,7 @@ def make_ranges(bags: Sequence[str | Path], weights: str | Path, every: int = 2,
     scans = ((s.points, s.grid, s.intensity) for bag in tqdm(bags, desc="calibration scans", unit="bag")
              for s in read_scans(bag, every=every))
     ranges, images, digest = calibrate_scans(weights, scans)
-    return write_ranges(ranges, weights, digest, command, images)
+    return write_ranges(ranges, weights, digest, command, images), images
 
 
 def calibrate_scans(weights: str | Path, scans: Iterable[tuple]) -> tuple[dict, int, str]:
