@@ -585,7 +585,8 @@ def report(spec: ExperimentSpec, tables: dict, paths: dict, out: Path) -> Path:
                  f"![correlations]({Path(paths[f'fig_correlations_{labels}']).name})\n"]
     text += ["## Multi-relation\n", _markdown(tables["multirelation"], MR_COLUMNS), "",
              "![multirelation](multirelation.png)\n",
-             "## Time per window (ms, one thread; PNE and CPV with planes cached)\n",
+             "## Time per window (ms, one thread; PNE and CPV with planes cached; MME and MPV share one "
+             "neighbourhood pass, half of its time each)\n",
              _markdown(tables["timing"], ["window", "metric", "n", "median_ms", "p90_ms", "max_ms"]), "",
              "![timing](timing.png)\n", "![scatter](scatter.png)\n",
              "All correlations (Pearson, Spearman, Kendall): correlations.csv.\n"]
