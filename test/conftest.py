@@ -19,3 +19,16 @@ def office_bag(tmp_path_factory):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture
+def cli_exit_code():
+    """topometric's exit code for an argv, argparse's own refusals (SystemExit) included."""
+    from topometric_ros.cli import main
+
+    def run(argv) -> int:
+        try:
+            return main(argv)
+        except SystemExit as e:
+            return e.code
+    return run

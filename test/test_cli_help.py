@@ -83,7 +83,7 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["evaluate", "--scales", "0"], "argument --scales: expected numbers > 0, got '0'"),
                         (["simulate", "--rate", "0", "--out", "x"], "argument --rate: expected a number > 0"),
                         (["simulate", "--rate", "1000", "--out", "x"],
-                         "--rate 1000 is more scans a second than the sensor makes (VLP-32C sweeps 10 times a second)"),
+                         "rate 1000 is more scans a second than the VLP-32C makes (it sweeps 10 times a second)"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
                         (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb"),
@@ -144,9 +144,10 @@ def test_an_output_folder_the_os_will_not_make_is_named_as_the_flag(office_bag):
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["alarms", "--frames", "40"], "--frames 40 at --rate 5 Hz is 8 s: drift episodes start after 20 s and last up to "
-                                   "10 s; give --frames 150 or more"),
-    (["plane-quality", "--seed", "3-1"], "no seed in '3-1' (a range runs low-high)"),
+    (["alarms", "--frames", "129"], "--frames 129 at --rate 5 Hz is 25.8 s: drift episodes start after 20 s and "
+                                    "last 6 s or more; give --frames 130 or more"),
+    (["plane-quality", "--seed", "3-1"], "no seed in '3-1' of '3-1' (a range runs low-high)"),
+    (["plane-quality", "--seed", "3-1,5"], "no seed in '3-1' of '3-1,5'"),
     (["plane-quality", "--scenes", ""], "give at least one scene"),
     (["alarms", "--estimates", ""], "give at least one value"),
 ])
@@ -178,6 +179,11 @@ def test_simulate_writes_into_an_empty_folder_but_not_into_another_bag(office_ba
     res = subprocess.run([*base, "--out", str(office_bag[0] / "inner")], capture_output=True, text=True)
     assert res.returncode == 2 and "is inside the bag folder" in res.stderr, res.stderr
     assert not (office_bag[0] / "inner").exists()
+    project = tmp_path / "project"  # a metadata.yaml that is no rosbag2 bag's does not make a bag folder
+    project.mkdir()
+    (project / "metadata.yaml").write_text("title: my dataset\n")
+    res = subprocess.run([*base, "--rate", "10", "--out", str(project / "out" / "sim")], capture_output=True, text=True)
+    assert res.returncode == 0 and (project / "out" / "sim" / "metadata.yaml").is_file(), res.stderr
 
 
 def test_an_unknown_option_is_refused_by_its_subcommand_with_the_closest_known_ones():
@@ -259,3 +265,22 @@ def test_eval_seg_flags_that_set_config_leaves_take_their_ranges(tmp_path):
         res = subprocess.run([sys.executable, "-m", "topometric_ros.cli", "eval-seg", str(tmp_path / "nothing"),
                               *extra], capture_output=True, text=True)
         assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr, (extra, res.stderr)
+
+
+def test_outputs_beside_a_loose_bag_file_are_fine_only_its_own_folder_is_not(office_bag, tmp_path):
+    """A bag given as its .mcap file: its own folder is refused for output (the next read would take the files as
+    part of the bag), a folder below it is not (train's default data/cache beside data/run.mcap); for a bag
+    folder, the folder and anything inside it are refused."""
+    import shutil
+
+    from topometric_ros.cli import _refuse_writing_into_bags
+
+    data = tmp_path / "data"
+    data.mkdir()
+    loose = data / "run.mcap"
+    shutil.copy(next(office_bag[0].glob("*.mcap")), loose)
+    _refuse_writing_into_bags("--cache", str(data / "cache"), [loose])
+    with pytest.raises(ValueError, match="is the folder of the bag file"):
+        _refuse_writing_into_bags("--cache", str(data), [loose])
+    with pytest.raises(ValueError, match="is inside the bag folder"):
+        _refuse_writing_into_bags("--cache", str(office_bag[0] / "cache"), [office_bag[0]])

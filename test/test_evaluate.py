@@ -62,17 +62,24 @@ def test_runs_of_another_setup_are_not_reused_under_a_new_spec(tmp_path):
 def test_the_shipped_report_is_replaced_only_by_the_same_experiment(tmp_path):
     """results/ holds the shipped report without its runs: another spec is refused there (it would replace the
     report), the full experiment is not; a folder without a report takes any spec."""
+    import shutil
     from pathlib import Path
     from dataclasses import replace
 
-    from topometric_ros.experiments.evaluate import _same_runs
+    from topometric_ros.experiments.evaluate import _same_runs, default_out
 
-    shipped = Path(__file__).resolve().parents[1] / "results"
+    shipped = tmp_path / "results"  # the shipped report as a clone has it (a machine that ran it has runs/ too)
+    shipped.mkdir()
+    for name in ("spec.json", "REPORT.md"):
+        shutil.copy(Path(__file__).resolve().parents[1] / "results" / name, shipped / name)
     _same_runs(ExperimentSpec(), shipped)
     for other in (ExperimentSpec.quick(), replace(ExperimentSpec(), frames=10)):
         with pytest.raises(ValueError, match="holds the report of another experiment"):
             _same_runs(other, shipped)
     _same_runs(ExperimentSpec.quick(), tmp_path)
+    assert default_out(ExperimentSpec()) == "results" and default_out(ExperimentSpec.quick(), quick=True) == \
+        "out/evaluate_quick"
+    assert default_out(replace(ExperimentSpec(), scenes=("office1",))) == "out/evaluate"
 
 
 @pytest.mark.parametrize("argv, words", [
@@ -82,19 +89,12 @@ def test_the_shipped_report_is_replaced_only_by_the_same_experiment(tmp_path):
     (["--noise", ""], "give at least one value"),
     (["--labels", ""], "give at least one value"),
 ])
-def test_an_experiment_that_cannot_run_is_refused_before_any_work(tmp_path, capsys, argv, words):
+def test_an_experiment_that_cannot_run_is_refused_before_any_work(tmp_path, capsys, cli_exit_code, argv, words):
     """Each of these ended in a traceback (IndexError) or a numpy message, and left empty run files behind."""
     out = tmp_path / "ev"
-    assert _exit_code(["evaluate", "--quick", "--engine", "local", "--out", str(out), *argv]) == 2
+    assert cli_exit_code(["evaluate", "--quick", "--engine", "local", "--out", str(out), *argv]) == 2
     assert words in capsys.readouterr().err
     assert not out.exists()
-
-
-def _exit_code(argv) -> int:
-    try:
-        return main(argv)
-    except SystemExit as e:  # argparse refuses a bad value itself
-        return e.code
 
 
 def test_another_experiment_is_written_apart_from_the_shipped_report(tmp_path, monkeypatch):

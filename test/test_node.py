@@ -706,6 +706,7 @@ def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, t
     ({"window.size": 1}, ["parameter 'window.size' = 1: a window needs 2 scans or more; 0 = automatic"]),
     ({"window.sise": 10}, ["unknown parameter", "window.sise"]),
     ({"segmentation.mode": "magic"}, ["segmentation.mode", "one of"]),
+    ({"latency_warn_s": "-5"}, ["latency_warn_s", "out of range"]),  # a quoted number: checked once it is one
 ])
 def test_bad_parameters_stop_the_node_with_a_message_naming_them(ros_env, tmp_path, bad, words):
     node = start_node(tmp_path, {**BASE, **bad})

@@ -209,13 +209,6 @@ def test_blend_refuses_to_write_over_the_weights_it_reads(trained, office_bag, t
     assert f"is a folder; give the weights file in it ({out / 'w' / 'rangenet.pt'})" in capsys.readouterr().err
 
 
-def _exit_code(argv) -> int:
-    try:
-        return main(argv)
-    except SystemExit as e:  # argparse refuses a bad value itself
-        return e.code
-
-
 @pytest.mark.parametrize("extra, words", [
     (["--widths", "8,8"], "--widths: expected 3 whole numbers > 0 separated by commas, got '8,8'"),
     (["--widths", "0,8,8"], "--widths: expected 3 whole numbers > 0"),
@@ -224,11 +217,12 @@ def _exit_code(argv) -> int:
     (["--context", "2"], "--context: expected 2 whole numbers > 0"),
     (["--init", "missing.pt"], "segmentation weights not found: missing.pt"),
 ])
-def test_train_refuses_a_bad_network_or_start_before_building_the_cache(office_bag, tmp_path, capsys, extra, words):
+def test_train_refuses_a_bad_network_or_start_before_building_the_cache(office_bag, tmp_path, capsys, cli_exit_code,
+                                                                        extra, words):
     """Each was a torch traceback, an unpacking error that named no option, or (--init) a failure after the
     projected-scan cache was built (minutes to hours on a real training set)."""
     bag, _ = office_bag
-    assert _exit_code(["train", str(bag), "--out", str(tmp_path / "w"), "--cache", str(tmp_path / "cache"),
+    assert cli_exit_code(["train", str(bag), "--out", str(tmp_path / "w"), "--cache", str(tmp_path / "cache"),
                        *extra]) == 2
     assert words in capsys.readouterr().err
     assert not (tmp_path / "cache").exists() and not (tmp_path / "w").exists()

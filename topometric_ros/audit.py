@@ -40,7 +40,7 @@ import numpy as np
 
 from .config import Config, flatten
 from .reports import write_csv, write_json
-from .bag import not_a_bag
+from .bag import bag_name, not_a_bag
 
 MANIFEST = "audit.json"
 REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
@@ -109,7 +109,7 @@ def find_bags(args: Iterable[str]) -> list[Path]:
 def bag_names(bags: list[Path]) -> list[str]:
     """A folder name per bag under OUT/bags: the bag's name, with a short hash of its path where two bags of
     the set share a name."""
-    base = [p.stem if p.is_file() else p.resolve().name for p in bags]  # "." names the folder it is
+    base = [bag_name(p) for p in bags]
     return [b if base.count(b) == 1 else _hashed_name(b, p) for b, p in zip(base, bags)]
 
 

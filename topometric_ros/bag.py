@@ -313,8 +313,11 @@ class BagWriter:
         if storage not in STORAGES:
             raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
         self.path = Path(path)
-        if self.path.is_dir() and not any(self.path.iterdir()):
-            self.path.rmdir()  # an empty folder made for it: the writer makes the bag folder itself
+        if self.path.is_dir() and not self.path.is_symlink() and not any(self.path.iterdir()):
+            try:
+                self.path.rmdir()  # an empty folder made for it: the writer makes the bag folder itself
+            except OSError:
+                pass  # a mount point: "exists already" below
         if self.path.exists():
             raise BagError(f"{self.path} exists already; choose a new output path or remove it")
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
@@ -373,6 +376,12 @@ def zstd_chunks(file: Path) -> None:
             writer.add_metadata(meta.name, meta.metadata)
         writer.finish()
     tmp.replace(file)
+
+
+def bag_name(bag_path: str | Path) -> str:
+    """A bag's name: its folder's ("." names the folder it is), or its file's without the extension."""
+    p = Path(bag_path)
+    return p.stem if p.is_file() else p.resolve().name
 
 
 def truth_path(bag_path: str | Path) -> Path:

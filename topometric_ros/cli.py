@@ -61,12 +61,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.split and args.train + args.test == 0:
         print("error: --split with --train 0 and --test 0 writes no bag", file=sys.stderr)
         return 2
-    from .sensors import sensor
+    from . import storage
 
-    fast = [f"{n} sweeps {sensor(n).rate_hz:g} times a second" for n in args.sensor if args.rate > sensor(n).rate_hz]
-    if fast:
-        print(f"error: --rate {args.rate:g} is more scans a second than the sensor makes ({'; '.join(fast)}): one scan "
-              "per sweep at most", file=sys.stderr)
+    holder = next((p for p in out.resolve().parents if storage.has_metadata(p)), None)
+    if holder is not None:  # the new bag would hide there: readers and the audit take the outer folder as one bag
+        print(f"error: --out {args.out} is inside the bag folder {holder}; give a folder outside it", file=sys.stderr)
         return 2
     for name in args.sensor:
         target = out / name if len(args.sensor) > 1 else out
@@ -288,22 +287,23 @@ def _alarms_mode_options(args: argparse.Namespace) -> str:
     return "; ".join(problems)
 
 
-def _too_short_for_an_episode(frames: int, rate: float) -> str:
-    """Why drift bags of ``frames`` scans at ``rate`` Hz can hold no drift episode ("" when they can)."""
+def _too_short_for_an_episode(args: argparse.Namespace) -> str:
+    """Why the detection table's drift bags (``--frames`` scans at ``--rate`` Hz) can hold no drift episode ("" when
+    they can, and for the calibrations, which choose from drift-free windows)."""
     from .sim.drift import EPISODE_LENGTH_S, EPISODE_WARMUP_S
 
-    need = EPISODE_WARMUP_S + EPISODE_LENGTH_S[1]
-    if frames / rate >= need:
+    need = EPISODE_WARMUP_S + EPISODE_LENGTH_S[0]
+    if args.calibrate or args.calibrate_rates or args.frames / args.rate >= need:
         return ""
-    return (f"--frames {frames} at --rate {rate:g} Hz is {frames / rate:g} s: drift episodes start after "
-            f"{EPISODE_WARMUP_S:g} s and last up to {EPISODE_LENGTH_S[1]:g} s; give --frames {math.ceil(need * rate)} "
-            "or more")
+    return (f"--frames {args.frames} at --rate {args.rate:g} Hz is {args.frames / args.rate:g} s: drift episodes start "
+            f"after {EPISODE_WARMUP_S:g} s and last {EPISODE_LENGTH_S[0]:g} s or more; give --frames "
+            f"{math.ceil(need * args.rate)} or more")
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:
     from .experiments.alarms import SCALES, calibrate, format_calibration, format_detection, run_detection
 
-    mismatch = _alarms_mode_options(args) or _too_short_for_an_episode(args.frames, args.rate)
+    mismatch = _alarms_mode_options(args) or _too_short_for_an_episode(args)
     if mismatch:
         print(f"error: {mismatch}", file=sys.stderr)
         return 2
@@ -477,7 +477,7 @@ def _whole_numbers(count: int):
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from .experiments.evaluate import ExperimentSpec, run
+    from .experiments.evaluate import ExperimentSpec, default_out, run
 
     spec = ExperimentSpec.quick() if args.quick else ExperimentSpec()
     given = {"scenes": args.scenes and tuple(args.scenes), "windows": args.win, "noises": args.noise,
@@ -493,8 +493,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if spec.frames < max(spec.windows):
         raise ValueError(f"--frames {spec.frames} holds no window of {max(spec.windows)} scans (--win); give at least "
                          f"{max(spec.windows)}")
-    # results/ is the shipped report: only the full experiment writes there by default
-    out = args.out or ("out/evaluate_quick" if args.quick else "results" if spec == ExperimentSpec() else "out/evaluate")
+    out = args.out or default_out(spec, args.quick)
     paths = run(spec, out, workers=args.workers, engine=args.engine, address=args.address or None)
     print(Path(paths["report"]).read_text())
     print(f"wrote {out}/ (report: {paths['report']}) in {paths['elapsed_s']:.0f} s; {paths['reused']} of "
@@ -508,11 +507,11 @@ def _seeds(text: str) -> list[int]:
         out = []
         for part in text.split(","):
             lo, _, hi = part.partition("-")
+            if hi and int(hi) < int(lo):
+                raise argparse.ArgumentTypeError(f"no seed in {part!r} of {text!r} (a range runs low-high)")
             out += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
     except ValueError:
         raise argparse.ArgumentTypeError(f"seeds must look like 0 or 0,3,5 or 0-6, got {text!r}") from None
-    if not out:
-        raise argparse.ArgumentTypeError(f"no seed in {text!r} (a range runs low-high)")
     return list(dict.fromkeys(out))  # each seed once: a repeated one would count its planes twice
 
 
@@ -562,7 +561,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     spec = ModelSpec(widths=args.widths, context=args.context)
     bags = find_bags(args.bags)
     val = find_bags(args.val) if args.val else []
-    _refuse_inside_bags("--cache", args.cache, bags + val)
+    _refuse_writing_into_bags("--cache", args.cache, bags + val)
     print(f"training on {len(bags)} bag(s), validating on {len(val)}; output {args.out}")
     both = {Path(b).resolve() for b in bags} & {Path(b).resolve() for b in val}
     if both:
@@ -946,16 +945,21 @@ def _terminated(signum, frame) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def _refuse_inside_bags(flag: str, folder: str, bags) -> None:
-    """ValueError when ``folder`` is one of ``bags`` or lies inside one: what is written there would sit among the
-    bag's files, which the next read takes as part of the bag."""
+def _refuse_writing_into_bags(flag: str, folder: str, bags) -> None:
+    """ValueError when ``folder`` is one of ``bags``' folders or lies inside one, or is the folder of a bag given
+    as its .mcap / .db3 file (links resolved): what is written there would sit among the bag's files, which the
+    next read takes as part of the bag."""
+    from . import bag
+
     real = Path(folder).resolve()
-    for given in bags:
+    for given in filter(None, bags):
         source = Path(given).resolve()
-        source = source.parent if source.is_file() else source
-        if real == source or source in real.parents:
-            raise ValueError(f"{flag} {folder} is {'the' if real == source else 'inside the'} bag folder {given}; "
-                             "give a folder outside it")
+        if source.is_file() and real == source.parent:
+            raise ValueError(f"{flag} {folder} is the folder of the bag file {given}: what the command writes would "
+                             "sit beside it, and the next read takes it as part of the bag; give another folder")
+        if source.is_dir() and not bag.not_a_bag(source) and (real == source or source in real.parents):
+            raise ValueError(f"{flag} {folder} is {'the' if real == source else 'inside the'} bag folder {given}: "
+                             "what the command writes would be written into the bag; give a folder outside it")
 
 
 def _check_out(args: argparse.Namespace) -> None:
@@ -967,22 +971,8 @@ def _check_out(args: argparse.Namespace) -> None:
     path = Path(out).absolute()
     if path.exists() and not path.is_dir():
         raise ValueError(f"--out {out} is a file; give a folder")
-    from . import bag
-
-    real = path.resolve()  # links resolved on both sides: a link to the bag is the bag
-    inputs = [getattr(args, "bag", None)] + list(getattr(args, "bags", None) or [])
-    for given in filter(None, inputs):
-        source = Path(given).resolve()
-        if source.is_file() and real == source.parent:  # a .mcap / .db3 file: not into its own folder
-            raise ValueError(f"--out {out} is the folder of the bag file {given}: what the command writes would sit "
-                             "beside it, and the next read takes it as part of the bag; give another folder")
-        if source.is_dir() and not bag.not_a_bag(source) and (real == source or source in real.parents):
-            raise ValueError(f"--out {out} is {'the' if real == source else 'inside the'} bag folder {given}: what "
-                             "the command writes would be written into the bag; give a folder outside it")
-    holder = next((p for p in real.parents if (p / "metadata.yaml").is_file() and not bag.not_a_bag(p)), None)
-    if holder is not None:  # any command's output inside a bag folder (simulate's new bag among another's files)
-        raise ValueError(f"--out {out} is inside the bag folder {holder}: what the command writes would be written into "
-                         "the bag; give a folder outside it")
+    inputs = [getattr(args, "bag", None), *(getattr(args, "bags", None) or []), *(getattr(args, "val", None) or [])]
+    _refuse_writing_into_bags("--out", out, inputs)
     above = next(p for p in path.parents if p.exists())
     if not path.exists() and not (above.is_dir() and os.access(above, os.W_OK | os.X_OK)):
         raise ValueError(f"--out {out}: cannot make a folder in {above}"

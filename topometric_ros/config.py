@@ -296,11 +296,11 @@ def _extrinsic(name: str, value: list) -> list[float]:
 def _number(value: Any) -> float | None:
     """``value`` as a float when it is a number, or a string that reads as one (YAML 1.1 leaves 1e-3 a string),
     else None."""
-    if isinstance(value, (int, float)):
-        return float(value)
     try:
+        if isinstance(value, (int, float)):
+            return float(value)
         return float(value) if isinstance(value, str) else None
-    except ValueError:
+    except (ValueError, OverflowError):  # not a number; an int past the float range
         return None
 
 

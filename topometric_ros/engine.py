@@ -139,6 +139,8 @@ def ensure_ray(workers: int = 2, address: str | None = None) -> None:
     import ray
 
     _check_workers(workers, address)
+    if address:
+        _check_reachable(address)  # before a running Ray is shut down for it
     key = (address or None, None if address else int(workers))
     if ray.is_initialized():
         if not _RAY or _RAY.get("key") == key:
@@ -146,7 +148,6 @@ def ensure_ray(workers: int = 2, address: str | None = None) -> None:
         ray.shutdown()
     common = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
     if address:
-        _check_reachable(address)
         ray.init(address=address, **common)
     else:  # "local": a new local Ray even when a cluster runs on this machine
         ray.init(address="local", num_cpus=int(workers), _node_ip_address="127.0.0.1",
@@ -168,6 +169,7 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
     host, sep, port = address.rpartition(":")
     if not sep or "://" in address or not port.isdigit():
         return
+    host = host.strip("[]")  # [::1]:6379
     try:
         socket.create_connection((host, int(port)), timeout=timeout_s).close()
     except OSError as e:

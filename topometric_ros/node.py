@@ -248,6 +248,7 @@ class MonitorNode(Node):
         node = {k: values[k] for k in parameters.NODE_SPEC}
         for name, (default, _) in parameters.NODE_SPEC.items():  # node parameters: the default's type
             node[name] = config_module._coerce(name, default, node[name])
+            parameters.check(name, node[name])  # again as a number: a quoted '-5' reads as one only now
         return node
 
     # ------------------------------------------------------------ callbacks

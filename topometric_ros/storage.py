@@ -118,6 +118,11 @@ def is_bag_folder(path: str | Path) -> bool:
     return path.is_dir() and any(p.name == "metadata.yaml" or p.suffix in (".mcap", ".db3") for p in path.iterdir())
 
 
+def has_metadata(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a readable rosbag2 metadata.yaml (a recorded bag's, not any file of that name)."""
+    return bool(_metadata(Path(folder)))
+
+
 def bag_files(path: str | Path) -> list[Path]:
     """The storage files of a bag folder (metadata.yaml's list when it has one and they exist, else its
     *.mcap and *.db3 files in split order) or the file itself. Unsupported for a compressed bag."""

@@ -58,6 +58,12 @@ class ExperimentSpec:
         return cls(scenes=("office1",), trajectories=1, frames=100, windows=(5,), labels=("gt",), baseline_windows=1)
 
 
+def default_out(spec: ExperimentSpec, quick: bool = False) -> str:
+    """Where an experiment writes without --out: out/evaluate_quick for --quick, results/ (the shipped report) for
+    the full experiment only, out/evaluate for any other."""
+    return "out/evaluate_quick" if quick else "results" if spec == ExperimentSpec() else "out/evaluate"
+
+
 # ---------------------------------------------------------------- per-scan work (once per trajectory)
 
 def _frames(scene: str, traj: int, spec: ExperimentSpec):

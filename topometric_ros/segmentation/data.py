@@ -49,18 +49,12 @@ def read_scans(bag_path: str | Path, topic: str = "", every: int = 1, limit: int
 
 def scene_of(bag_path: str | Path) -> str:
     """The scene a bag shows: from its truth.json (simulated bags), else the folder name."""
-    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("scene", _name(bag_path)))
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("scene", bag.bag_name(bag_path)))
 
 
 def sensor_of(bag_path: str | Path) -> str:
     """The sensor model a simulated bag was made with (truth.json), else the folder name."""
-    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("sensor", _name(bag_path)))
-
-
-def _name(bag_path: str | Path) -> str:
-    """A bag's name: its folder's, or its file's without the extension (a bag given as its .mcap)."""
-    p = Path(bag_path)
-    return p.stem if p.is_file() else p.name
+    return str((bag.load_truth(bag_path) or {}).get("config", {}).get("sensor", bag.bag_name(bag_path)))
 
 
 def scan_images(scan: LabelledScan) -> tuple[np.ndarray, np.ndarray]:

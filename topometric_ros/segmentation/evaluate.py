@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from .. import classes as C
+from ..bag import bag_name
 from ..reports import write_csv, write_json
 from .data import read_scans, scene_of, sensor_of
 from .metrics import accuracy, confusion, iou_per_class, miou
@@ -72,8 +73,8 @@ def summary_row(name: str, conf: np.ndarray) -> dict:
 def _bag_label(path: Path, names: list[str]) -> str:
     """A bag's name; with the two folders above it when ``names`` (every bag's name) holds it twice (simulate
     --split names a sensor's bags alike: VLP-16/test/office1_0, OS1-32/test/office1_0)."""
-    if names.count(path.name) == 1:
-        return path.name
+    if names.count(bag_name(path)) == 1:
+        return bag_name(path)
     return "/".join(path.parts[-3:])
 
 
@@ -81,7 +82,7 @@ def write_report(result: dict, out: str | Path, title: str = "") -> dict:
     """per_class_iou.csv, confusion.csv, confusion.png and metrics.json under ``out``; returns metrics."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    names = [Path(b).name for b in result["bags"]]
+    names = [bag_name(b) for b in result["bags"]]
     rows = [summary_row(f"bag:{_bag_label(Path(b), names)}", c) for b, c in result["bags"].items()]
     rows += [summary_row(f"scene:{s}", c) for s, c in result["scenes"].items()]
     if len(result.get("sensors", {})) > 1:

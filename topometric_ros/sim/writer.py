@@ -55,6 +55,12 @@ class SimConfig:
     clock_jump: tuple = ()  # (at s after the start, offset s, duration s): cloud stamps jump by offset meanwhile
     compress: bool = True  # MCAP chunks zstd-compressed (2-3x smaller bags; every MCAP reader reads them)
 
+    def __post_init__(self) -> None:
+        sweeps = sensor(self.sensor).rate_hz
+        if self.rate > sweeps:
+            raise ValueError(f"rate {self.rate:g} is more scans a second than the {self.sensor} makes (it sweeps "
+                             f"{sweeps:g} times a second): one scan per sweep at most")
+
     @property
     def extrinsic(self) -> np.ndarray:
         """base_link -> sensor, 4×4."""
