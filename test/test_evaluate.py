@@ -73,7 +73,7 @@ def test_the_shipped_report_is_replaced_only_by_the_same_experiment(tmp_path):
     for name in ("spec.json", "REPORT.md"):
         shutil.copy(Path(__file__).resolve().parents[1] / "results" / name, shipped / name)
     _same_runs(ExperimentSpec(), shipped)
-    for other in (ExperimentSpec.quick(), replace(ExperimentSpec(), frames=10)):
+    for other in (ExperimentSpec.quick(), replace(ExperimentSpec(), frames=20)):
         with pytest.raises(ValueError, match="holds the report of another experiment"):
             _same_runs(other, shipped)
     _same_runs(ExperimentSpec.quick(), tmp_path)
@@ -133,3 +133,15 @@ def test_perturbation_respects_mode_and_scale():
     assert np.allclose(r_only[:, :3, 3], 0) and not np.allclose(r_only[:, :3, :3], np.eye(3))
     t_only = _perturb(poses, "t", 2.0, rng)
     assert np.allclose(t_only[:, :3, :3], np.eye(3)) and t_only[:, :3, 3].std() <= 0.05 * 2.0 * 1.05
+
+
+def test_a_spec_that_cannot_run_is_refused_when_made_not_when_run():
+    """The checks live in ExperimentSpec, so the Python API refuses what the CLI refuses."""
+    from dataclasses import replace
+
+    quick = ExperimentSpec.quick()
+    for change, words in (({"frames": 4}, "holds no window of 5 scans"), ({"scenes": ()}, "scenes"),
+                          ({"noises": ("x",)}, "unknown noise mode or label source: x"),
+                          ({"labels": ("network", "oracle")}, "oracle")):
+        with pytest.raises(ValueError, match=words):
+            replace(quick, **change)

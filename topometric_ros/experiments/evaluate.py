@@ -52,6 +52,20 @@ class ExperimentSpec:
     radius: float = 1.0
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        """ValueError for an experiment that cannot run: nothing to run, an unknown noise mode or label source, or
+        trajectories too short for one window."""
+        empty = [name for name in ("scenes", "windows", "noises", "scales", "labels") if not getattr(self, name)]
+        if empty:
+            raise ValueError(f"give at least one of each: {', '.join(empty)}")
+        bad = [n for n in self.noises if n not in NOISE_SIGMAS] + [x for x in self.labels if x not in ("network", "gt")]
+        if bad:
+            raise ValueError(f"unknown noise mode or label source: {', '.join(bad)} (noise: r, t, rt; labels: "
+                             "network, gt)")
+        if self.frames < max(self.windows):
+            raise ValueError(f"--frames {self.frames} holds no window of {max(self.windows)} scans (--win); give at "
+                             f"least {max(self.windows)}")
+
     @classmethod
     def quick(cls) -> "ExperimentSpec":
         """A tiny run for CI: one office room, one trajectory, window 5 only, ground-truth labels."""
