@@ -137,12 +137,15 @@ def test_a_default_topic_is_taken_only_when_it_has_the_type_and_others_are_named
                           exclude=["/odom_gt"]) == ("/odom", "")
 
 
-def test_a_simulated_bag_given_as_its_mcap_file_has_its_truth(office_bag):
+def test_a_simulated_bag_given_as_its_mcap_file_has_its_truth(office_bag, tmp_path):
     """A bag given as its .mcap file is the same bag (README): its truth.json, scene and sensor are found (eval-seg
-    grouped such a bag as 'scene:office1_rt.mcap', and train's --share found no sensor in it)."""
+    grouped such a bag as 'scene:office1_rt.mcap', and train's --share found no sensor in it), also through a
+    link to the file."""
     from topometric_ros.segmentation.data import scene_of, sensor_of
 
     folder, truth = office_bag
     (mcap,) = folder.glob("*.mcap")
-    assert bag.load_truth(mcap) == bag.load_truth(folder) == json.loads(json.dumps(truth))
+    link = tmp_path / "linked.mcap"
+    link.symlink_to(mcap)
+    assert bag.load_truth(mcap) == bag.load_truth(link) == bag.load_truth(folder) == json.loads(json.dumps(truth))
     assert scene_of(mcap) == scene_of(folder) == "office1" and sensor_of(mcap) == sensor_of(folder) == "VLP-32C"

@@ -387,7 +387,7 @@ def bag_name(bag_path: str | Path) -> str:
 def truth_path(bag_path: str | Path) -> Path:
     """Where a simulated bag keeps its truth.json: in the bag folder (the folder of a bag given as its .mcap or
     .db3 file)."""
-    p = Path(bag_path)
+    p = Path(bag_path).resolve()  # a linked .mcap: the bag it belongs to
     return (p.parent if p.is_file() else p) / "truth.json"
 
 

@@ -255,12 +255,12 @@ def run(spec: ExperimentSpec, out: str | Path, workers: int = 2, progress: bool 
 
     out = Path(out)
     _same_runs(spec, out)
-    if engine == "ray":
+    started = time.perf_counter()
+    todo = [j for j in jobs(spec) if not (out / "runs" / f"{_job_name(*j)}.csv").exists()]
+    if engine == "ray" and todo:
         ensure_ray(workers, address)  # an unreachable cluster is refused before anything is written
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.json").write_text(json.dumps(asdict(spec), indent=2))
-    started = time.perf_counter()
-    todo = [j for j in jobs(spec) if not (out / "runs" / f"{_job_name(*j)}.csv").exists()]
     caches = sorted({(j[1], j[2], j[0]) for j in todo if j[0] != BASELINE_JOB})
     todo.sort(key=lambda j: j[0] != BASELINE_JOB)  # the long baseline jobs first, so the workers end evenly
     kw = dict(engine=engine, workers=workers, address=address, progress=progress)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import torch
@@ -190,9 +191,9 @@ def blend_weights(parent: str | Path, tuned: str | Path, alpha: float, out: str 
     and its validation result dropped (it was the tuned weights'). Returns the path."""
     if not 0.0 <= alpha <= 1.0:
         raise SegmentationError(f"blend alpha must be within [0, 1], got {alpha}")
-    target = (Path(out) / WEIGHTS_NAME).resolve()
+    target = Path(out) / WEIGHTS_NAME
     for role, given in (("parent", parent), ("tuned", tuned)):
-        if Path(given).resolve() == target:
+        if target.exists() and Path(given).exists() and os.path.samefile(given, target):  # links, hard links too
             raise SegmentationError(f"the output folder {out} holds the {role} weights {given}: the blend would replace "
                                     "them; give another folder")
     card_p, state_p = load_weights(parent)
