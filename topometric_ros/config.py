@@ -311,10 +311,10 @@ def _coerce(name: str, current: Any, value: Any) -> Any:
     if kind is bool:
         if isinstance(value, bool):
             return value
-    elif kind is float and not isinstance(value, bool) and _number(value) is not None:
-        if not math.isfinite(_number(value)):
+    elif kind is float and not isinstance(value, bool) and (number := _number(value)) is not None:
+        if not math.isfinite(number):
             raise ValueError(f"config key {name!r} must be a finite number, got {value!r}")
-        return _number(value)
+        return number
     elif isinstance(value, kind) and not isinstance(value, bool):
         return value
     raise ValueError(f"config key {name!r} must be {kind.__name__}, got {value!r}")

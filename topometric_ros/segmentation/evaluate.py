@@ -73,9 +73,8 @@ def summary_row(name: str, conf: np.ndarray) -> dict:
 def _bag_label(path: Path, names: list[str]) -> str:
     """A bag's name; with the two folders above it when ``names`` (every bag's name) holds it twice (simulate
     --split names a sensor's bags alike: VLP-16/test/office1_0, OS1-32/test/office1_0)."""
-    if names.count(bag_name(path)) == 1:
-        return bag_name(path)
-    return "/".join(path.parts[-3:])
+    name = bag_name(path)
+    return name if names.count(name) == 1 else "/".join(path.parts[-3:])
 
 
 def write_report(result: dict, out: str | Path, title: str = "") -> dict:
