@@ -98,6 +98,22 @@ def assessment_fields(a: "Assessment | None") -> dict:
     return out
 
 
+@dataclass
+class _Verdict:
+    """One window's level so far, its alarms (they raise the level) and notes (they do not)."""
+
+    level: str = "OK"
+    alarms: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+
+    def alarm(self, level: str, text: str) -> None:
+        self.level = _worse(self.level, level)
+        self.alarms.append(text)
+
+    def message(self) -> str:
+        return "; ".join(self.alarms + self.notes)
+
+
 class Health:
     """Stateful assessor: one per monitored stream. ``assess`` sets result.level / result.message."""
 
@@ -131,13 +147,24 @@ class Health:
     def assess(self, result: Any) -> Assessment:
         """Level and reason for a WindowResult (its ``level``/``message`` are set too). The message leads with
         the alarms, drift rates first ("rotation drift: 3.5 °/s (limit 1.2 ...)"), then the rest."""
-        c = self.config
-        level, alarms, notes, z, warn_at, error_at = "OK", [], [], {}, {}, {}
-        learning = False
+        verdict, warn_at, error_at = _Verdict(), {}, {}
         sigma_z = self._sigma_z(result)
         for metric, high in self._high.items():
-            high.append(sigma_z.get(metric, float("nan")) >= c.warn_sigma)
+            high.append(sigma_z.get(metric, float("nan")) >= self.config.warn_sigma)
         limits = self.rates.limits(result)
+        self._judge_rates(result, limits, verdict, warn_at, error_at)
+        z, bases = self._judge_metrics(result, limits, sigma_z, verdict, warn_at, error_at)
+        self.rates.learn(result)
+        self._judge_scans(result, verdict, warn_at)
+        self._learn_baselines(result, verdict.level, z, bases)
+        self._state_notes(result, verdict, z, learning=any(b is None for b in bases.values()))
+        result.level, result.message = verdict.level, verdict.message()
+        self.last = Assessment(verdict.level, result.message, z, warn_at, error_at)
+        return self.last
+
+    def _judge_rates(self, result: Any, limits: dict, verdict: "_Verdict", warn_at: dict, error_at: dict) -> None:
+        """The drift rates against their limits: ERROR at once, WARN once persistent, pose noise a WARN."""
+        c = self.config
         for rate, (meaning, unit) in RATES.items():
             value, se, shown = self.rates.judged(result, rate)
             warn, error = warn_at[rate], error_at[rate] = limits[rate]
@@ -146,25 +173,28 @@ class Health:
             if not np.isfinite(value):
                 continue  # no co-plane group: already reported as CPV undefined
             if error > 0 and value >= error:
-                level = _worse(level, "ERROR")
-                alarms.append(f"{meaning}: {shown} {unit} (limit {error:.3g}{self.rates.why(result)})")
+                verdict.alarm("ERROR", f"{meaning}: {shown} {unit} (limit {error:.3g}{self.rates.why(result)})")
             elif high[-1] and sum(high) >= self.rates.persist:
-                level = _worse(level, "WARN")
-                alarms.append(f"{meaning}: {shown} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
+                verdict.alarm("WARN", f"{meaning}: {shown} {unit} (limit {warn:.3g}{self.rates.why(result)})" +
                               (f" ({sum(high)} of the last {len(high)} windows)" if self.rates.persist > 1 else ""))
             elif high[-1]:
-                notes.append(f"watch: {meaning} {shown} {unit} above limit {warn:.3g} in {sum(high)} of "
-                             f"{self.rates.persist} windows needed")
+                verdict.notes.append(f"watch: {meaning} {shown} {unit} above limit {warn:.3g} in {sum(high)} of "
+                                     f"{self.rates.persist} windows needed")
             if c.noise_warn > 0 and warn > 0 and se >= c.noise_warn * warn:  # NaN never alarms
-                level = _worse(level, "WARN")
-                alarms.append(f"pose noise: {meaning} {shown} {unit}, its standard error {se / warn:.2g} × the limit "
-                              f"{warn:.3g} (the poses scatter from scan to scan)")
-        bases: dict[str, tuple[float, float] | None] = {}  # of the metrics with a finite value
+                verdict.alarm("WARN", f"pose noise: {meaning} {shown} {unit}, its standard error {se / warn:.2g} × "
+                              f"the limit {warn:.3g} (the poses scatter from scan to scan)")
+
+    def _judge_metrics(self, result: Any, limits: dict, sigma_z: dict, verdict: "_Verdict", warn_at: dict,
+                       error_at: dict) -> tuple[dict, dict]:
+        """PNE and CPV against their absolute limits and their baselines (persistent z). Returns (robust z,
+        baseline) per metric with a finite value (baseline None while learning)."""
+        c = self.config
+        z: dict[str, float] = {}
+        bases: dict[str, tuple[float, float] | None] = {}
         for metric, unit in METRICS.items():
             value = float(getattr(result, metric))
             if not np.isfinite(value):
-                level = _worse(level, "WARN")
-                alarms.append(f"{metric.upper()} undefined (no co-planar planes)")
+                verdict.alarm("WARN", f"{metric.upper()} undefined (no co-planar planes)")
                 continue
             meaning = _meaning(metric, result, limits)
             base = bases[metric] = self.baseline(metric)
@@ -173,48 +203,50 @@ class Health:
             z[metric] = sigma_z.get(metric, float("nan"))
             high = self._high[metric]
             persistent = sum(high) >= c.warn_persist
-            learning |= base is None
             if lim_err != 0 and value >= lim_err:
-                level = _worse(level, "ERROR")
-                alarms.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
+                verdict.alarm("ERROR", f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_err:g}")
             elif base and z[metric] >= c.error_sigma and persistent:
-                level = _worse(level, "ERROR")
-                alarms.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
+                verdict.alarm("ERROR", f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline")
             elif lim_warn != 0 and value >= lim_warn:
-                level = _worse(level, "WARN")
-                alarms.append(f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
+                verdict.alarm("WARN", f"{meaning}: {metric.upper()} {value:.3g} {unit} above limit {lim_warn:g}")
             elif base and z[metric] >= c.warn_sigma and persistent:
-                level = _worse(level, "WARN")
-                alarms.append(f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
+                verdict.alarm("WARN", f"{meaning}: {metric.upper()} {z[metric]:.1f}σ above baseline" +
                               (f" ({sum(high)} of the last {len(high)} windows)" if c.warn_persist > 1 else ""))
             elif base and z[metric] >= c.warn_sigma:
-                notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
-                             f"{sum(high)} of {c.warn_persist} windows needed")
-        self.rates.learn(result)
+                verdict.notes.append(f"watch: {metric.upper()} {z[metric]:.1f}σ above baseline in "
+                                     f"{sum(high)} of {c.warn_persist} windows needed")
+        return z, bases
+
+    def _judge_scans(self, result: Any, verdict: "_Verdict", warn_at: dict) -> None:
+        """A scan that lines up with no other (pose jump) and too few planes: WARN at once."""
+        c = self.config
         agreement = float(getattr(result, "agreement", float("nan")))
         warn_at["agreement"] = c.agreement_warn if c.agreement_warn > 0 else float("nan")
         if agreement < warn_at["agreement"]:  # NaN (no co-plane group, the rule off) never alarms
-            level = _worse(level, "WARN")
-            alarms.append(f"pose jump: {_which_scan(result)} lines up with the others for {agreement:.0%} of its "
-                          f"plane inliers (limit {c.agreement_warn:.0%})")
+            verdict.alarm("WARN", f"pose jump: {_which_scan(result)} lines up with the others for {agreement:.0%} "
+                          f"of its plane inliers (limit {c.agreement_warn:.0%})")
         if result.n_planes < c.min_planes:
-            level = _worse(level, "WARN")
-            alarms.append(f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
-        calm = all(not np.isfinite(v) or v < c.warn_sigma / 2 for v in z.values())
-        for metric in METRICS:  # only clearly normal windows teach a learnt baseline (no creep)
+            verdict.alarm("WARN", f"too few planes ({result.n_planes} < {c.min_planes}): metrics unreliable")
+
+    def _learn_baselines(self, result: Any, level: str, z: dict, bases: dict) -> None:
+        """Only clearly normal windows (OK, every z under warn_sigma / 2) teach a learnt baseline (no creep);
+        every finite window teaches one still learning."""
+        calm = all(not np.isfinite(v) or v < self.config.warn_sigma / 2 for v in z.values())
+        for metric in METRICS:
             value = float(getattr(result, metric))
             if np.isfinite(value) and (bases[metric] is None or (level == "OK" and calm)):
                 self._history[metric].append(to_scale(metric, value))
+
+    def _state_notes(self, result: Any, verdict: "_Verdict", z: dict, learning: bool) -> None:
+        """What the assessor is still learning, or "consistent (...)" when nothing else was said."""
+        c = self.config
         if learning:
             n = min(len(h) for h in self._history.values())
-            notes.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
-        elif not alarms and not notes:
-            notes.append("consistent (" + ", ".join(f"{m.upper()} {z[m]:+.1f}σ" for m in z) + ")")
+            verdict.notes.append(f"learning baseline ({n}/{c.baseline_windows} windows)")
+        elif not verdict.alarms and not verdict.notes:
+            verdict.notes.append("consistent (" + ", ".join(f"{m.upper()} {z[m]:+.1f}σ" for m in z) + ")")
         if self.rates.learning and all(np.isfinite(float(getattr(result, r, np.nan))) for r in RATES):
-            notes.append(f"learning the rates' noise floor ({self.rates.seen}/{c.noise_windows} windows)")
-        result.level, result.message = level, "; ".join(alarms + notes)
-        self.last = Assessment(level, result.message, z, warn_at, error_at)
-        return self.last
+            verdict.notes.append(f"learning the rates' noise floor ({self.rates.seen}/{c.noise_windows} windows)")
 
     def _sigma_z(self, result: Any) -> dict:
         """Robust z of each finite metric against the baseline (empty while learning)."""
