@@ -694,14 +694,8 @@ class Parser(argparse.ArgumentParser):
         return parsed
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    from .config import CHOICES, SegmentationConfig
-
-    p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
-    p.add_argument("--version", action="version", version=f"topometric {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
-
+def _add_simulate(sub) -> None:
+    """The `simulate` subcommand's options."""
     s = sub.add_parser("simulate", help="simulate a LiDAR robot run in an indoor scene and write a rosbag2 bag")
     s.add_argument("--scene", type=_scenes, default=["garage"], help="floor2, garage, office1, office2 (comma list with --split)")
     s.add_argument("--frames", type=_positive, default=600, help="scans per bag")
@@ -731,6 +725,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output bag directory (with --split: a parent directory)")
     s.set_defaults(func=cmd_simulate)
 
+
+def _add_train(sub) -> None:
+    """The `train` subcommand's options."""
     t = sub.add_parser("train", help="train the segmentation network on labelled bags (simulated train split)")
     t.add_argument("bags", nargs="+", help="bags, or folders with bags anywhere below (e.g. data/sim/train)")
     t.add_argument("--val", nargs="*", default=[], help="validation bags (scored every epoch; the epoch of best mIoU on "
@@ -759,12 +756,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "split the rest equally; default: every model an equal share)")
     t.set_defaults(func=cmd_train)
 
+
+def _add_blend(sub) -> None:
+    """The `blend` subcommand's options."""
     b = sub.add_parser("blend", help="blend a fine-tuned network with the weights it started from (WiSE-FT)")
     b.add_argument("parent", help="the weights the fine-tune started from")
     b.add_argument("tuned", help="the fine-tuned weights (same network)")
     b.add_argument("--alpha", type=_fraction, default=0.5, help="share of the tuned weights, 0..1")
     b.add_argument("--out", required=True, help="output folder for rangenet.pt and model_card.json")
     b.set_defaults(func=cmd_blend)
+
+
+def _add_eval_seg(sub) -> None:
+    """The `eval-seg` subcommand's options."""
+    from .config import CHOICES, SegmentationConfig
 
     e = sub.add_parser("eval-seg", help="segmentation mIoU, per-class IoU, confusion matrix and speed on labelled bags")
     e.add_argument("bags", nargs="+", help="bags, or folders with bags anywhere below (e.g. data/sim/test)")
@@ -796,6 +801,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", default="out/eval_seg", help="output folder")
     e.set_defaults(func=cmd_eval_seg)
 
+
+def _add_quantize(sub) -> None:
+    """The `quantize` subcommand's options."""
     q = sub.add_parser("quantize", help="calibrate the int8 network: activation ranges saved beside the weights")
     q.add_argument("bags", nargs="+", help="labelled or unlabelled bags of any sensors, or folders of bags "
                                            "(e.g. data/any_val/*/test; never the evaluation bags)")
@@ -803,6 +811,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--every", type=_positive, default=2, help="use every n-th scan of each bag")
     q.set_defaults(func=cmd_quantize)
 
+
+def _add_norm_stats(sub) -> None:
+    """The `norm-stats` subcommand's options."""
     n = sub.add_parser("norm-stats", help="BatchNorm statistics for non-repetitive (Livox-like) scans, saved beside "
                                           "the weights")
     n.add_argument("bags", nargs="+", help="bags of a non-repetitive sensor, or folders of bags (the training split, "
@@ -812,6 +823,9 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--every", type=_positive, default=1, help="use every n-th scan of each bag")
     n.set_defaults(func=cmd_norm_stats)
 
+
+def _add_replay(sub) -> None:
+    """The `replay` subcommand's options."""
     r = sub.add_parser("replay",
                        help="replay a bag through the monitor: diagnostics.mcap, windows.csv/json, metrics.png")
     r.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3) or a .mcap file")
@@ -822,6 +836,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_monitor_args(r)
     r.set_defaults(func=cmd_replay)
 
+
+def _add_audit(sub) -> None:
+    """The `audit` subcommand's options."""
     au = sub.add_parser("audit", help="many bags (a fleet's logs) through the monitor on Ray or in-process: "
                                       "per-bag reports and OUT/fleet.csv, fleet.json, index.html",
                         epilog=AUDIT_EXIT)
@@ -840,6 +857,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_monitor_args(au)
     au.set_defaults(func=cmd_audit)
 
+
+def _add_inspect(sub) -> None:
+    """The `inspect` subcommand's options."""
     i = sub.add_parser("inspect", help="per-scan stages on a bag's clouds (no odometry needed): layout, grid, "
                                        "segmentation, planes; a PNG per scan and scans.csv")
     i.add_argument("bag", help="rosbag2 folder (MCAP or sqlite3)")
@@ -852,6 +872,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_monitor_args(i)
     i.set_defaults(func=cmd_inspect)
 
+
+def _add_alarms(sub) -> None:
+    """The `alarms` subcommand's options."""
     a = sub.add_parser("alarms", help="drift-alarm detection table on held-out simulated bags (r/t/rt x 1/1.5/2)")
     a.add_argument("--out", default="out/alarms", help="bags, replays and detection.json/csv/png go here")
     a.add_argument("--scene", type=_scenes, default=["garage", "office1", "floor2", "office2"],
@@ -893,12 +916,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_monitor_args(a, "labels")
     a.set_defaults(func=cmd_alarms)
 
+
+def _add_demo(sub) -> None:
+    """The `demo` subcommand's options."""
     d = sub.add_parser("demo", help="simulate a garage bag with a drift episode, replay it, print the alarms")
     d.add_argument("--out", default="out/demo", help="output folder: the bag and the replay's reports")
     d.add_argument("--frames", type=_positive, default=150, help="scans in the demo bag (5 per second)")
     _add_monitor_args(d, "labels")
     d.set_defaults(func=cmd_demo)
 
+
+def _add_evaluate(sub) -> None:
+    """The `evaluate` subcommand's options."""
     e = sub.add_parser("evaluate", help="the paper's noise experiment: every metric against RPE, correlations, timing")
     e.add_argument("--scenes", type=_scenes, default=None, help="scenes (default: floor2,garage)")
     e.add_argument("--win", type=_window_sizes, default=None, help="window sizes (default: 5,10,15)")
@@ -917,6 +946,9 @@ def build_parser() -> argparse.ArgumentParser:
                                              "out/evaluate_quick with --quick)")
     e.set_defaults(func=cmd_evaluate)
 
+
+def _add_plane_quality(sub) -> None:
+    """The `plane-quality` subcommand's options."""
     q = sub.add_parser("plane-quality", help="plane detection recall/purity against simulated plane instances")
     q.add_argument("--scenes", type=_scenes, default=["floor2", "garage", "office1", "office2"],
                    help="scenes (comma list)")
@@ -929,6 +961,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--sensor", type=_sensors, default=[DEFAULT_SENSOR], help="sensor model(s): a name, a comma list or 'all'")
     q.add_argument("--out", default="out/planes", help="output folder")
     q.set_defaults(func=cmd_plane_quality)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    p = Parser(prog="topometric", description="Map-consistency drift monitor for LiDAR SLAM.")
+    p.add_argument("--version", action="version", version=f"topometric {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_simulate, _add_train, _add_blend, _add_eval_seg, _add_quantize, _add_norm_stats, _add_replay,
+                _add_audit, _add_inspect, _add_alarms, _add_demo, _add_evaluate, _add_plane_quality):
+        add(sub)
     return p
 
 
