@@ -165,6 +165,11 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
         assert fourth.summary["ran"] == 1 and [r["bag"] for r in fourth.rows if not r["cached"]] == ["night_2"]
     finally:
         truth.write_bytes(keep)
+    # a cached bag whose metrics.png was lost (index.html links it): replayed again, the picture back
+    (tmp_path / "bags" / "night_1" / "metrics.png").unlink()
+    fifth = audit(bags, tmp_path, changed, engine="local", progress=False)
+    assert [r["bag"] for r in fifth.rows if not r["cached"]] == ["night_1", "night_2"]  # night_2: truth restored
+    assert (tmp_path / "bags" / "night_1" / "metrics.png").is_file()
 
 
 def _descends_from_us(pid: int) -> bool:

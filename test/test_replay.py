@@ -305,6 +305,7 @@ def test_a_sidecar_odometry_bag_on_another_receive_clock_still_pairs_every_scan(
     assert alone["counters"]["scans_processed"] == 30 and alone["windows"] == 6
     assert both["counters"]["scans_processed"] == 30 and both["windows"] == 6
     assert both["counters"]["dropped_scans"] == 0
+    assert not any(n.startswith("the cloud stamps run") for n in both["notes"])  # receive times of two recordings
 
 
 def test_a_late_tf_static_and_bad_ground_truth_lose_nothing_and_say_so(office_bag, tmp_path):
@@ -419,8 +420,9 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
                                        "every scan failed in processing; last: scan",
                                        "use --segmentation network"),
         "no_odometry": (rewrite(bag_path, tmp_path / "noodom", lambda t, m: [] if "odom" in t else [(t, m)]),
-                        ["--segmentation", "labels"], "no odometry: /odom is not in the bag (its Odometry topics: none)",
-                        "name the topic with --odom-topic; `topometric inspect` looks at the clouds alone"),
+                        ["--segmentation", "labels"], "no odometry: the bag has no nav_msgs/msg/Odometry topic; the "
+                        "monitor judges the SLAM's poses as nav_msgs/msg/Odometry",
+                        "record the SLAM's odometry topic with the clouds; `topometric inspect` looks at the clouds alone"),
         "wrong_topic_named": (rewrite(bag_path, tmp_path / "two", lambda t, m: [(t, m)] + [("/front/points", m)] * (t == "/points")),
                               ["--segmentation", "labels", "--points-topic", "/lidar"],
                               "PointCloud2 topic /lidar is not in the bag (its PointCloud2 topics: /front/points, /points)",
@@ -694,3 +696,147 @@ def test_an_out_folder_inside_the_bag_is_refused_before_anything_runs(office_bag
     assert cli.main(["inspect", str(loose / "run.mcap"), "--out", str(loose), "--limit", "1"]) == 2
     assert cli.main(["inspect", str(loose / "run.mcap"), "--out", str(loose / "inspect"), "--limit", "1",
                      "--segmentation", "labels", "--no-plot"]) == 0
+
+
+# ------------------------------------------------------------------ what the odometry leaves unjudged, said
+def _rewritten(bag_path, out, change):
+    """A copy of ``bag_path`` at ``out``: change(topic, t, msg, t_first_cloud) -> [(topic, t, msg), ...]."""
+    from topometric_ros import bag
+
+    first = None
+    with bag.BagWriter(out) as w:
+        for topic, t_ns, msg in bag.read_messages(bag_path):
+            t = t_ns * 1e-9
+            first = t if topic == "/points" and first is None else first
+            for item in change(topic, t, msg, first):
+                w.write(*item)
+    return out
+
+
+def _notes(bag_path, out, **over):
+    config = load_config(overrides={"segmentation.mode": "labels", "window.size": 5, **over})
+    return replay(bag_path, out, config, ReplayOptions(progress=False, plot=False)).summary
+
+
+def test_odometry_that_ends_before_the_clouds_is_said_not_passed_as_green(office_bag, tmp_path):
+    """/odom stops 3 s into a 6 s bag: the lost scans are a left-out note, the odometry's end a note, the STALE
+    status a note (before: all windows OK and nothing said but a counter)."""
+    bag_path, _ = office_bag
+    cut = _rewritten(bag_path, tmp_path / "cut", lambda topic, t, msg, first: [] if topic == "/odom" and first
+                     is not None and t - first > 3.0 else [(topic, t, msg)])
+    s = _notes(cut, tmp_path / "out", **{"health.stale_after_s": 1.0})
+    lost = s["counters"]["dropped_no_pose"]
+    assert 10 <= lost <= 16 and s["scans_processed"] == 30 - lost
+    notes = "\n".join(s["notes"])
+    assert f"left out: {lost} scans with no odometry at their stamps; last: no odometry within" in notes
+    assert "the odometry ends 2." in notes and "the scans after it are not judged" in notes
+    assert "STALE 1 time in diagnostics.mcap" in notes and "no odometry for" in notes
+    whole = _notes(bag_path, tmp_path / "whole", **{"health.stale_after_s": 1.0})
+    assert not any(k in n for n in whole["notes"] for k in ("left out", "odometry ends", "STALE"))
+
+
+def test_odometry_of_a_frame_tf_static_does_not_link_to_the_clouds_is_said(office_bag, tmp_path):
+    """The odometry of base_footprint, /tf_static only base_link -> sensor: the identity extrinsic is used and
+    a note says which frames are unlinked and what /tf_static holds."""
+    bag_path, _ = office_bag
+
+    def footprint(topic, t, msg, first):
+        if topic == "/odom":
+            msg = copy.deepcopy(msg)
+            msg.child_frame_id = "base_footprint"
+        return [(topic, t, msg)]
+
+    s = _notes(_rewritten(bag_path, tmp_path / "fp", footprint), tmp_path / "out")
+    assert s["extrinsic_source"] == "config"
+    gap = [n for n in s["notes"] if n.startswith("no /tf_static chain links")]
+    assert len(gap) == 1 and "odometry's child frame base_footprint" in gap[0]
+    assert "/tf_static holds base_link -> " in gap[0] and "the identity is used" in gap[0]
+    whole = _notes(bag_path, tmp_path / "whole")
+    assert whole["extrinsic_source"] == "tf_static" and not any("/tf_static chain" in n for n in whole["notes"])
+
+
+def test_odometry_stamped_seconds_off_the_clouds_is_said_to_be_a_clock_offset(office_bag, tmp_path):
+    """Odometry headers 2 s late from the start (receive times as recorded): no clock jump, but the clouds'
+    lead on the odometry says what the drift alarms may be; the bag as recorded has no such note."""
+    bag_path, _ = office_bag
+
+    def late(topic, t, msg, first):
+        if topic == "/odom":
+            msg = copy.deepcopy(msg)
+            msg.header.stamp.sec += 2
+        return [(topic, t, msg)]
+
+    s = _notes(_rewritten(bag_path, tmp_path / "late", late), tmp_path / "out")
+    lead = [n for n in s["notes"] if n.startswith("the cloud stamps run")]
+    assert len(lead) == 1 and " behind the odometry's" in lead[0]
+    assert 1.9 <= float(lead[0].split()[4]) <= 2.1
+    assert not any(n.startswith("the cloud stamps run") for n in _notes(bag_path, tmp_path / "whole")["notes"])
+
+
+def test_odometry_farther_apart_than_the_pose_gap_names_the_setting(office_bag, tmp_path):
+    """Odometry every 1.5 s (one message in 30): no scan finds a pose within window.max_pose_gap_s; the reason
+    names the odometry's interval and the setting to raise, and that setting then pairs the scans."""
+    bag_path, _ = office_bag
+    count = {"n": 0}
+
+    def sparse(topic, t, msg, first):
+        if topic == "/odom":
+            count["n"] += 1
+            return [(topic, t, msg)] if count["n"] % 30 == 1 else []
+        return [(topic, t, msg)]
+
+    slow = _rewritten(bag_path, tmp_path / "slow", sparse)
+    s = _notes(slow, tmp_path / "out")
+    assert s["scans_processed"] == 0
+    assert "the odometry comes every 1.5" in s["no_scans"] and "window.max_pose_gap_s = 0.5 s" in s["no_scans"]
+    assert s["no_scans"] not in s["notes"]  # said once
+    fixed = _notes(slow, tmp_path / "fixed", **{"window.max_pose_gap_s": 2.3})
+    assert fixed["scans_processed"] >= 20
+
+
+def test_a_bag_whose_poses_are_only_on_tf_says_they_are_not_read(office_bag, tmp_path):
+    """/odom replaced by /tf transforms: the reason says the bag has no Odometry topic and that /tf is not read
+    as poses (before: 'name the topic with --odom-topic', with no topic to name)."""
+    from topometric_ros import bag
+
+    bag_path, _ = office_bag
+
+    def tf_only(topic, t, msg, first):
+        if topic == "/odom_gt":
+            return []
+        if topic != "/odom":
+            return [(topic, t, msg)]
+        stamp, pose = bag.odometry_pose(msg)
+        return [("/tf", t, bag.make_tf(stamp, pose, msg.header.frame_id, msg.child_frame_id))]
+
+    s = _notes(_rewritten(bag_path, tmp_path / "tf", tf_only), tmp_path / "out")
+    assert s["scans_processed"] == 0
+    assert s["no_scans"].startswith("no odometry: the bag has no nav_msgs/msg/Odometry topic (its transforms on /tf "
+                                    "are not read as poses)")
+    assert "--odom-topic" not in s["no_scans"]
+
+
+def test_a_bag_too_short_to_learn_the_baselines_says_so(office_bag, tmp_path):
+    """6 windows against health.baseline_windows 10: a note that PNE/CPV were judged by absolute limits only;
+    with 2 baseline windows, no such note."""
+    bag_path, _ = office_bag
+    short = _notes(bag_path, tmp_path / "short", **{"health.baseline_windows": 10})
+    assert any(n.startswith("the PNE/CPV baselines were still being learned at the last window (6 windows, "
+                            "health.baseline_windows 10)") for n in short["notes"])
+    armed = _notes(bag_path, tmp_path / "armed", **{"health.baseline_windows": 2})
+    assert not any("baselines were" in n for n in armed["notes"])
+
+
+def test_a_replay_into_a_folder_of_older_reports_leaves_none_of_them(office_bag, tmp_path):
+    """An earlier replay's reports in --out are removed first: a replay without a plot (or one interrupted
+    before its reports) leaves no metrics.png of another bag beside its own files."""
+    bag_path, _ = office_bag
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("metrics.png", "windows.csv", "windows.json"):
+        (out / name).write_text("an older replay's")
+    (out / "mine.txt").write_text("the user's")
+    s = _notes(bag_path, out)
+    assert s["windows"] == 6 and not (out / "metrics.png").exists()
+    assert json.loads((out / "windows.json").read_text())["summary"]["windows"] == 6
+    assert (out / "mine.txt").read_text() == "the user's"

@@ -39,11 +39,10 @@ from typing import Any, Iterable
 import numpy as np
 
 from .config import Config, flatten
-from .reports import write_csv, write_json
+from .reports import REPORT_FILES, write_csv, write_json
 from .bag import bag_name, not_a_bag
 
 MANIFEST = "audit.json"
-REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
 AUDIT_FORMAT = 1
 LEVELS = ("OK", "WARN", "ERROR")
 _RANK = {"OK": 0, "WARN": 1, "ERROR": 2}
@@ -362,9 +361,11 @@ def plan(bags: list[Path], out: Path, config: Config, options: dict | None = Non
 
 
 def _cached_manifest(folder: Path, name: str, key: dict) -> dict | None:
-    """The manifest of OUT/bags/<name> when it holds ``key`` and the reports are there, else None."""
+    """The manifest of OUT/bags/<name> when it holds ``key`` and the reports its row names are there, else
+    None."""
     manifest = _load_manifest(folder / name)
-    ok = manifest and manifest.get("key") == key and (folder / name / "windows.json").is_file()
+    needed = ["windows.json"] + (["metrics.png"] if manifest and manifest["row"].get("metrics_png") else [])
+    ok = manifest and manifest.get("key") == key and all((folder / name / f).is_file() for f in needed)
     return manifest if ok else None
 
 

@@ -114,6 +114,11 @@ class ClockWatch:
         self._stepped.clear()
         return ""
 
+    def lead(self) -> float:
+        """s the cloud stamps run ahead of the odometry's against their receive times (the median of the last
+        accepted clouds; NaN before three): about 0 when both stamp at the measurement and arrive soon after."""
+        return float(np.median(self._cloud)) if len(self._cloud) >= 3 else float("nan")
+
     def cloud(self, stamp: float, received: float | None) -> str:
         """'' when the cloud fits the clock the odometry keeps, else the fault (the cloud is not to be used)."""
         if received is None or self.jump_s <= 0 or len(self._odom) < 3:
@@ -164,6 +169,10 @@ class StaticTransforms:
                 self._parent[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), pose)
                 n += 1
         return n
+
+    def links(self) -> list[str]:
+        """Every stored transform as "parent -> child"."""
+        return [f"{parent} -> {child}" for child, (parent, _) in self._parent.items()]
 
     def lookup(self, parent: str, child: str) -> np.ndarray | None:
         """4×4 child-to-parent pose along stored transforms, None when the frames are not connected upward."""
@@ -373,6 +382,22 @@ class Monitor:
         """A tf2_msgs/TFMessage from /tf_static: the extrinsic comes from it when it links the frames."""
         self.static_tf.add_message(msg)
         self._resolve_extrinsic()
+
+    @property
+    def extrinsic_gap(self) -> str:
+        """Why window.extrinsic stands although the odometry's child frame is not the cloud frame: no /tf_static
+        chain links them ('' when one does, when the two frames are one, or before both are known)."""
+        child, sensor = self._odom_child.lstrip("/"), self.sensor_frame.lstrip("/")
+        if self.extrinsic_source != "config" or not child or not sensor or child == sensor:
+            return ""
+        held = self.static_tf.links()
+        tf = (f"/tf_static holds {', '.join(held[:6])}{', ...' if len(held) > 6 else ''}" if held
+              else "no /tf_static came")
+        if np.allclose(self.extrinsic, np.eye(4)):
+            return (f"no /tf_static chain links the odometry's child frame {child} to the cloud frame {sensor} "
+                    f"({tf}): the identity is used (window.extrinsic); if {sensor} is not at {child}, every "
+                    "window is judged with that error: set window.extrinsic or record the transform")
+        return f"no /tf_static chain links {child} to {sensor} ({tf}): window.extrinsic is used"
 
     def _resolve_extrinsic(self) -> None:
         """The sensor's pose in the odometry's child frame from /tf_static, whichever of the two hangs below the

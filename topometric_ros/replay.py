@@ -30,7 +30,7 @@ from .cloud import bad_beam_note
 from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import Monitor, valid_pose
-from .reports import csv_value, write_csv, write_json
+from .reports import REPORT_FILES, csv_value, write_csv, write_json
 from .window import AUTO_PROBE, SlidingWindow
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -104,6 +104,7 @@ class _Recorder:
         self.records: list[dict] = []
         self.poses: list[list] = []  # per window: the scans' (stamp, sensor pose)
         self.clock_faults: list[dict] = []
+        self.stales: list[tuple[float, str]] = []  # (bag time s, reason) of each STALE status written
         self.monitor_ref = monitor_ref
         self.hardware_id = hardware_id
 
@@ -135,7 +136,16 @@ class _Recorder:
     def stale(self, stamp: float, reason: str, hardware_id: str) -> None:
         status = diagnostic_status(self.types, "STALE", reason, {}, hardware_id=hardware_id)
         with self.lock:
+            self.stales.append((stamp, reason))
             self.writer.write(DIAGNOSTICS_TOPIC, stamp, diagnostic_array(self.types, stamp, [status]))
+
+    def stale_notes(self, start: float | None) -> list[str]:
+        """One note for the STALE statuses written (how many, the first's time into the bag and reason)."""
+        if not self.stales:
+            return []
+        t, reason = self.stales[0]
+        n = len(self.stales)
+        return [f"STALE {n} time{'s' * (n > 1)} in diagnostics.mcap, first at {t - (start or t):.1f} s: {reason}"]
 
     def clock_fault(self, stamp: float, reason: str, hardware_id: str) -> None:
         """A clock fault as its own ERROR status ("<node>: clock"), apart from the map-consistency windows."""
@@ -168,6 +178,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     bag.check_bag(bag_path)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    for name in REPORT_FILES:  # an earlier replay's reports: none may pass for this one's (an interrupted run)
+        (out / name).unlink(missing_ok=True)
     if segmenter is None and scan_fn is None and config.segmentation.mode == "network":
         segmenter = load_segmenter(config)
     ref: list = []
@@ -208,17 +220,21 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
         notes.append(f"{feed.bad_gt} ground-truth message{'s' * (feed.bad_gt > 1)} of {opt.gt_topic} left out: "
                      f"no finite rigid transform (RPE uses the others)")
     notes += _loss_notes(c, monitor.last_error_of, opt)
-    if monitor.extrinsic_note:
-        notes.append(monitor.extrinsic_note)
+    lead = "" if opt.beside else _clock_lead_note(monitor)  # a sidecar bag's receive times are another recording's
+    notes += [n for n in (monitor.extrinsic_note, monitor.extrinsic_gap, lead) if n]
+    notes += feed.coverage_notes(config) + rec.stale_notes(feed.first)
     if c["scans_processed"] and not records:
         notes.append(_why_no_window(c, monitor.window, monitor.last_error))
+    notes += _baseline_notes(records, config)
     summary = _summary(bag_path, monitor, records, feed, notes + log.lines(), speed)
     summary.update(topics={t: list(v) for t, v in topics.items()}, bag_read=log.counts(),
                    segmentation=config.segmentation.mode,
                    segmentation_options=network_options(config, getattr(segmenter, "precision", "")),
                    sensor=config.sensor.model or "read off each cloud",
                    layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
+    summary["odometry_interval_s"] = feed.odometry_interval()
     summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
+    summary["notes"] = [n for n in summary["notes"] if n != summary["no_scans"]]  # said once, as the reason
     summary["clock_faults"] = rec.clock_faults
     write_reports(out, records, summary, truth=bag.load_truth(bag_path), plot=opt.plot)
     return ReplayResult(out, records, summary)
@@ -235,6 +251,9 @@ class _Feed:
         self.gt_frame = ""  # the ground truth's child frame (its poses are of that frame)
         self.bad_gt = 0  # ground-truth messages left out: no finite rigid transform
         self.n_scans, self.first, self.last = 0, None, None
+        self.clouds: list[float | None] = [None, None]  # receive time (s) of the first and last cloud
+        self.odometry: list[float | None] = [None, None]  # of the first and last odometry message
+        self.n_odometry = 0
         self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
         self._stale = False
         self._levels: Counter = Counter()  # the levels of rec.records[:self._counted], for the progress bar
@@ -284,7 +303,8 @@ class _Feed:
         if self.speed is not None:
             time.sleep(max(0.0, wall0 + (t - self.first) / self.speed - time.perf_counter()))
         if monitor.last_scan_received is not None:
-            stale = monitor.stale(t)
+            # the bag's first stale_after_s: a stream not started yet (odometry after the first cloud) is no STALE
+            stale = monitor.stale(t) if t - self.first >= monitor.config.health.stale_after_s else None
             if stale and not self._stale:
                 self.rec.stale(t, stale[1], opt.hardware_id or monitor.sensor_frame)
             self._stale = bool(stale)
@@ -292,6 +312,28 @@ class _Feed:
         self._dispatch(topic, t, msg)
         if len(monitor.clock_events) > faults:
             self.rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
+
+    def odometry_interval(self) -> float | None:
+        """s between odometry messages on average (receive times), None with fewer than two."""
+        first, last = self.odometry
+        return (last - first) / (self.n_odometry - 1) if self.n_odometry >= 2 else None
+
+    def coverage_notes(self, config: Config) -> list[str]:
+        """Where the odometry leaves clouds without poses: it starts or ends more than health.stale_after_s
+        from the clouds (receive times), or comes farther apart than window.max_pose_gap_s."""
+        (c0, c1), (o0, o1) = self.clouds, self.odometry
+        if c0 is None or o0 is None:
+            return []
+        notes, limit = [], config.health.stale_after_s
+        if o0 - c0 > limit:
+            notes.append(f"the odometry starts {o0 - c0:.1f} s after the clouds: the scans before it are not judged")
+        if c1 - o1 > limit:
+            notes.append(f"the odometry ends {c1 - o1:.1f} s before the clouds (at {o1 - self.first:.1f} s of "
+                         f"{c1 - self.first:.1f} s): the scans after it are not judged")
+        gap, every = config.window.max_pose_gap_s, self.odometry_interval()
+        if every is not None and every > gap:
+            notes.append(_slow_odometry(every, self.n_odometry, gap))
+        return notes
 
     def _ground_truth(self, msg: Any) -> None:
         """Keep a ground-truth pose for RPE; one that is no finite rigid transform is counted and left out."""
@@ -311,8 +353,11 @@ class _Feed:
         if topic == opt.points_topic:
             monitor.add_cloud(msg, received=t)
             self.n_scans += 1
+            self.clouds = [self.clouds[0] if self.clouds[0] is not None else t, t]
         elif topic == opt.odom_topic:
             monitor.add_odometry(msg, received=t)
+            self.n_odometry += 1
+            self.odometry = [self.odometry[0] if self.odometry[0] is not None else t, t]
         elif topic == opt.gt_topic:
             self._ground_truth(msg)
         elif topic == opt.tf_static_topic:
@@ -370,19 +415,65 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
     if c["poses_in"] == 0:
         odoms = _of_type(topics, bag.ODOMETRY)
         where = (f"{odom} is not in the bag" if odom not in topics else f"no message of {odom} could be read")
-        return (f"no odometry: {where} (its Odometry topics: {', '.join(odoms) or 'none'}); the monitor needs the "
-                "SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic"
-                + ("" if odoms else "; `topometric inspect` looks at the clouds alone"))
+        tf = [t for t in _of_type(topics, bag.TF_MESSAGE) if not t.endswith("tf_static")]
+        if not odoms:
+            return (f"no odometry: the bag has no {bag.ODOMETRY} topic"
+                    + (f" (its transforms on {', '.join(tf)} are not read as poses)" if tf else "")
+                    + f"; the monitor judges the SLAM's poses as {bag.ODOMETRY}: record the SLAM's odometry topic "
+                      "with the clouds; `topometric inspect` looks at the clouds alone")
+        return (f"no odometry: {where} (its Odometry topics: {', '.join(odoms)}"
+                + (f"; its transforms on {', '.join(tf)} are not read as poses" if tf else "")
+                + "); the monitor needs the SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic")
     if c["bad_poses"] >= c["poses_in"]:
         return f"every odometry message of {odom} was invalid; last: {summary['last_monitor_error']}"
     if c["scan_errors"]:
         hint = ("; mode 'labels' reads the cloud's own label field (simulated bags): use --segmentation network "
                 "(or none) for a real sensor's bag") if config.segmentation.mode == "labels" else ""
         return f"every scan failed in processing; last: {summary['last_monitor_error']}{hint}"
+    every = summary.get("odometry_interval_s")
+    if c["dropped_no_pose"] and every is not None and every > config.window.max_pose_gap_s:
+        return _slow_odometry(every, c["poses_in"], config.window.max_pose_gap_s)
     if c["dropped_no_pose"]:
         return (f"no cloud had odometry within window.max_pose_gap_s = {config.window.max_pose_gap_s} s of its "
                 f"stamp (clouds and odometry on different clocks?); last: {summary['last_monitor_error']}")
     return f"no scan was processed; last monitor error: {summary['last_monitor_error'] or 'none'}"
+
+
+def _slow_odometry(every: float, n: int, gap: float) -> str:
+    """The note for odometry that comes farther apart than window.max_pose_gap_s."""
+    return (f"the odometry comes every {every:.2f} s ({n} messages), farther apart than window.max_pose_gap_s = "
+            f"{gap:g} s: scans between two messages get no pose; `--set window.max_pose_gap_s={1.5 * every:.2g}` "
+            f"interpolates over the gaps")
+
+
+def _clock_lead_note(monitor: Monitor) -> str:
+    """A note when the clouds' stamps run health.clock_jump_s or more ahead of (or behind) the odometry's against
+    their receive times from the start (a constant offset is no clock jump, but poses are looked up at the
+    wrong time: drift alarms may be the clock)."""
+    lead, limit = monitor.clock.lead(), monitor.config.health.clock_jump_s
+    if not np.isfinite(lead) or limit <= 0 or abs(lead) < limit:
+        return ""
+    way = "ahead of" if lead > 0 else "behind"
+    return (f"the cloud stamps run {abs(lead):.2f} s {way} the odometry's (against their receive times): if one "
+            "stream is stamped on another clock, the poses are looked up at the wrong time and the drift alarms "
+            "are that offset")
+
+
+def _baseline_notes(records: list[dict], config: Config) -> list[str]:
+    """When the PNE/CPV baselines never finished learning, or were learned mostly on windows that alarmed."""
+    learning = [r for r in records if "learning baseline" in str(r.get("message", ""))]
+    if not learning:
+        return []
+    if learning[-1] is records[-1]:
+        n = len(records)
+        return [f"the PNE/CPV baselines were still being learned at the last window ({n} window{'s' * (n > 1)}, "
+                f"health.baseline_windows {config.health.baseline_windows}): PNE and CPV judged by their absolute "
+                "limits only, the drift rates as everywhere"]
+    alarmed = sum(r["level"] != "OK" for r in learning)
+    if 2 * alarmed > len(learning):
+        return [f"{alarmed} of the {len(learning)} windows the PNE/CPV baselines were learned on alarmed: their "
+                "sigma limits are relative to a start that was already inconsistent"]
+    return []
 
 
 def _of_type(topics: dict[str, tuple[str, int]], msgtype: str) -> list[str]:
@@ -410,6 +501,7 @@ def _loss_notes(counters: dict, last_error_of: dict[str, str], opt: ReplayOption
               f"malformed or empty clouds of {opt.points_topic}"),
              ("bad_poses", f"invalid odometry message of {opt.odom_topic}",
               f"invalid odometry messages of {opt.odom_topic}"),
+             ("dropped_no_pose", "scan with no odometry at its stamp", "scans with no odometry at their stamps"),
              ("scan_errors", "scan that failed in processing", "scans that failed in processing"))
     return [f"{LEFT_OUT}{n} {one if n == 1 else many}; last: {last_error_of.get(counter, '')}"
             for counter, one, many in kinds if (n := counters.get(counter, 0))]
@@ -540,7 +632,7 @@ def metrics_figure(records: list[dict], truth: dict | None = None, summary: dict
                             xy=(0.5 * (learning[0] + learning[1]), 0.97), xycoords=("data", "axes fraction"),
                             ha="center", va="top", fontsize=8, color="#2a4a70")
     axes[-1, 0].set_xlabel("bag time since the first window's start (s); each point at its window's end")
-    fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right upper", fontsize=8,
+    fig.legend(handles=_legend_handles(records, truth, learning), loc="outside right center", fontsize=8,
                title="per window", title_fontsize=8)
     fig.suptitle(_plot_title(summary))
     if not records:

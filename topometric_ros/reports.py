@@ -11,6 +11,10 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 
+#: What a replay writes into its --out folder (an audit keeps the same per bag).
+REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
+
+
 def pyplot():
     """matplotlib.pyplot on the Agg backend (no display needed; PNG files only)."""
     import matplotlib
