@@ -12,34 +12,41 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 
+def _true_or_false(context, name: str) -> bool | None:
+    """A true/false launch argument; None when empty. Anything else stops the launch before any node starts."""
+    text = LaunchConfiguration(name).perform(context).strip().lower()
+    if not text:
+        return None
+    if text not in ("true", "false", "1", "0"):
+        raise ValueError(f"{name} must be true or false, got {text!r}")
+    return text in ("true", "1")
+
+
 def _sim_time(context) -> dict:
     """{"use_sim_time": bool} when the argument was given, else {} (the parameter file's value stands)."""
-    text = LaunchConfiguration("use_sim_time").perform(context).strip().lower()
-    if not text:
-        return {}
-    if text not in ("true", "false"):
-        raise ValueError(f"use_sim_time must be true or false, got {text!r}")
-    return {"use_sim_time": text == "true"}
+    given = _true_or_false(context, "use_sim_time")
+    return {} if given is None else {"use_sim_time": given}
 
 
 def _nodes(context):
     """The monitor node: the parameter file, then the arguments that were given; and the aggregator."""
     topics = {name: LaunchConfiguration(name).perform(context) for name in ("points_topic", "odom_topic")}
     sim_time = _sim_time(context)
+    aggregator = _true_or_false(context, "aggregator")  # checked before any node starts (none left orphaned)
     given = {**{name: value for name, value in topics.items() if value}, **sim_time}
     share = get_package_share_directory("topometric_ros")
-    return [Node(package="topometric_ros", executable="topometric_monitor", name="topometric_monitor",
-                 namespace=LaunchConfiguration("namespace"), parameters=[LaunchConfiguration("config"), given],
-                 output="screen"),
-            Node(package="diagnostic_aggregator", executable="aggregator_node", name="analyzers",
-                 namespace=LaunchConfiguration("namespace"),
-                 parameters=[os.path.join(share, "config", "analyzers.yaml"), sim_time],
-                 condition=IfCondition(LaunchConfiguration("aggregator")), output="screen")]
+    nodes = [Node(package="topometric_ros", executable="topometric_monitor", name="topometric_monitor",
+                  namespace=LaunchConfiguration("namespace"), parameters=[LaunchConfiguration("config"), given],
+                  output="screen")]
+    if aggregator:
+        nodes.append(Node(package="diagnostic_aggregator", executable="aggregator_node", name="analyzers",
+                          namespace=LaunchConfiguration("namespace"),
+                          parameters=[os.path.join(share, "config", "analyzers.yaml"), sim_time], output="screen"))
+    return nodes
 
 
 def generate_launch_description():
@@ -55,6 +62,6 @@ def generate_launch_description():
                               description="Odometry topic; empty = the parameter file's odom_topic"),
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the nodes"),
         DeclareLaunchArgument("aggregator", default_value="false",
-                              description="also start diagnostic_aggregator with config/analyzers.yaml"),
+                              description="true: also start diagnostic_aggregator with config/analyzers.yaml"),
         OpaqueFunction(function=_nodes),
     ])

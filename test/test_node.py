@@ -429,7 +429,7 @@ def rclpy_odom(stamp: float, pose: np.ndarray, frame="map", child="base_link"):
 class Feeder:
     """Publishers of this process on /points (sensor data), /odom (reliable) and /tf_static (latched)."""
 
-    def __init__(self, listener: Listener, sensor_offset=(0.0, 0.0, 0.5)):
+    def __init__(self, listener: Listener, sensor_offset=(0.0, 0.0, 0.5), child="base_link"):
         from geometry_msgs.msg import TransformStamped
         from nav_msgs.msg import Odometry
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -447,6 +447,7 @@ class Feeder:
         t.transform.rotation.w = 1.0
         self.tf.publish(TFMessage(transforms=[t]))
         self.sensor_offset = np.array(sensor_offset)
+        self.child = child  # the odometry's child frame (/tf_static links base_link to the cloud frame lidar)
         self.last_odom = 0.0
 
     def wait_matched(self, timeout=20.0):
@@ -475,7 +476,7 @@ class Feeder:
         now = time.time() if now is None else now
         for t in (now - 0.05, now + 0.15):
             if t > self.last_odom:  # odometry stamps only go forward
-                self.odom.publish(rclpy_odom(t, pose))
+                self.odom.publish(rclpy_odom(t, pose, child=self.child))
                 self.last_odom = t
         self.points.publish(rclpy_cloud(points, now, "lidar", labels))
 
@@ -543,6 +544,53 @@ def test_markers_have_the_true_plane_extents_in_the_map_frame(ros_env, tmp_path)
     finally:
         node.stop()
         listener.close()
+
+
+def test_odometry_of_a_frame_tf_static_does_not_link_is_named_in_the_status_and_on_the_console(ros_env, tmp_path):
+    """Odometry of imu_link, /tf_static only base_link -> lidar: the status's extrinsic says the identity stands
+    in and what /tf_static holds, and the console says it once (before: 'config', nothing else)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    node = start_node(tmp_path, BASE)
+    try:
+        feeder = Feeder(listener, child="imu_link")
+        feeder.wait_matched()
+        pts, labels = wall_patch()
+        gap = lambda a: any(s.name == CONSISTENCY and "/tf_static holds base_link -> lidar" in  # noqa: E731
+                            values(s).get("extrinsic", "") for s in a.status)
+        got, end = None, time.monotonic() + 30
+        while got is None and time.monotonic() < end:
+            feeder.scan(pts, yaw_pose(0.0, (0.0, 0.0, 0.0)), labels)
+            got = listener.wait_for("/diagnostics", gap, 1.0, node)
+        assert got, node.log()[-3000:]
+        extrinsic = values(next(s for s in got[1].status if s.name == CONSISTENCY))["extrinsic"]
+        assert extrinsic.startswith("config (no /tf_static chain links the odometry's child frame imu_link to the "
+                                    "cloud frame lidar"), extrinsic
+        end = time.monotonic() + 15
+        while "no /tf_static chain links" not in node.log() and time.monotonic() < end:
+            feeder.scan(pts, yaw_pose(0.0, (0.0, 0.0, 0.0)), labels)
+            time.sleep(0.5)
+    finally:
+        node.stop()
+        listener.close()
+    assert node.log().count("no /tf_static chain links the odometry's child frame imu_link") == 1, node.log()[-3000:]
+
+
+def test_use_sim_time_without_a_clock_is_said_on_the_console(ros_env, tmp_path):
+    """use_sim_time with no /clock: the node's clock stands at 0 and no status goes out; the console says why
+    (steady time), and a latency no queue explains names the stamps' time base."""
+    from topometric_ros.node import NO_CLOCK_WARN_S, time_base_hint
+
+    node = start_node(tmp_path, {**BASE, "use_sim_time": True})
+    try:
+        end = time.monotonic() + 60 + 2 * NO_CLOCK_WARN_S  # warm-up, then the steady timer
+        while "no /clock came" not in node.log() and time.monotonic() < end and node.popen.poll() is None:
+            time.sleep(0.5)
+    finally:
+        node.stop()
+    assert "use_sim_time is true but no /clock came in 5 s or more" in node.log(), node.log()[-3000:]
+    assert "a sensor clock counting from power-on" in time_base_hint(9.6e7) and time_base_hint(4.0) == ""
 
 
 def _real_bag_with_poses() -> Path | None:
@@ -657,12 +705,15 @@ def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
         from nav_msgs.msg import Odometry
 
         listener.node.create_publisher(Odometry, "/odom", qos_profile_sensor_data)
-        got = listener.wait_for("/diagnostics", stale("1 of its 1 publishers offer best effort, which odom_qos "
+        got = listener.wait_for("/diagnostics", stale("its publisher offers best effort, which odom_qos "
                                                       "reliable never receives: set odom_qos sensor_data"), 30, node)
         assert got, [s.message for _, _, s in statuses(listener)][-3:]
     finally:
         node.stop()
         listener.close()
+    log = node.log()  # the console says it too (once the node's first health.stale_after_s are over), not
+    assert "[topometric_monitor]: map consistency: STALE: no " in log, log[-3000:]  # /diagnostics alone
+    assert "(/odom has no publisher)" in log, log[-3000:]
 
 
 def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, tmp_path):
@@ -818,12 +869,13 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
         setter = listener.node.create_client(SetParameters, f"/robot1/{NODE}/set_parameters")
         assert setter.wait_for_service(20)
         future = setter.call_async(SetParameters.Request(parameters=[
-            Parameter("diagnostic_updater.period", Parameter.Type.DOUBLE, 5.0).to_parameter_msg()]))
+            Parameter("diagnostic_updater.period", Parameter.Type.DOUBLE, 5.0).to_parameter_msg(),
+            Parameter("use_sim_time", Parameter.Type.BOOL, False).to_parameter_msg()]))
         end = time.monotonic() + 10
         while not future.done() and time.monotonic() < end:
             time.sleep(0.05)
-        refused = future.result().results[0]
-        assert not refused.successful and "read-only" in refused.reason, refused
+        for refused in future.result().results:  # use_sim_time: a change would stop the node's clock
+            assert not refused.successful and "read-only" in refused.reason, refused
     finally:
         code, seconds = launch.sigint(15)
         launch.stop()
@@ -831,3 +883,21 @@ def test_launch_topics_win_over_the_yaml_under_a_namespace_and_the_aggregator_gr
     log = launch.log()
     assert code == 0 and "[topometric_monitor-1]: process has finished cleanly" in log, log[-3000:]
     assert "[topometric_monitor-1] Traceback" not in log, log[-3000:]
+
+
+def test_a_launch_argument_that_is_not_true_or_false_starts_no_node(ros_env, tmp_path, ament_prefix):
+    """aggregator:=yes: launch stops with the reason before any node starts (before: the monitor started, then
+    launch failed on the aggregator's condition and left it running with no parent)."""
+    env = {"AMENT_PREFIX_PATH": f"{ament_prefix}:{os.environ.get('AMENT_PREFIX_PATH', '')}"}
+    launch = Proc(["ros2", "launch", "topometric_ros", "monitor.launch.py", "aggregator:=yes",
+                   "namespace:=no_orphan_here"], tmp_path, "launch", env)
+    try:
+        code = launch.popen.wait(60)
+    finally:
+        launch.stop()
+    assert code != 0 and "aggregator must be true or false, got 'yes'" in launch.log(), launch.log()[-3000:]
+    time.sleep(1.0)
+    left = subprocess.run(["pgrep", "-f", "__ns:=/no_orphan_here"], capture_output=True, text=True).stdout.split()
+    for pid in left:
+        os.kill(int(pid), signal.SIGKILL)
+    assert not left, "a node outlived its launch"

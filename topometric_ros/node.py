@@ -38,6 +38,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -54,6 +55,8 @@ from .monitor import Monitor, warm_up
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 CHECK_PERIOD_S = 0.25  # s (node clock), how often STALE / every-scan-failing is checked
+NO_CLOCK_WARN_S = 5.0  # s (steady), how often a use_sim_time without /clock is said on the console
+OTHER_TIME_BASE_S = 60.0  # s, a latency this large is the stamps' time base, not processing
 LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR,
           "STALE": DiagnosticStatus.STALE}
 GROUP_COLOURS = np.array([[0.89, 0.10, 0.11], [0.22, 0.49, 0.72], [0.30, 0.69, 0.29], [0.60, 0.31, 0.64],
@@ -122,9 +125,19 @@ class ScanRate(diagnostic_updater.DiagnosticTask):
         return stat
 
 
-def _read_only_updater(changes) -> SetParametersResult:
-    """Refuse runtime changes of the Updater's parameters, read once at start like all of ours."""
-    names = [p.name for p in changes if p.name in parameters.UPDATER_SPEC]
+def time_base_hint(latency_s: float) -> str:
+    """For a latency no queue explains (a minute or more): the stamps and the node clock count from different
+    origins."""
+    if not latency_s >= OTHER_TIME_BASE_S:
+        return ""
+    return (f" (the scan stamps are {latency_s:.3g} s behind the node's clock: a sensor clock counting from "
+            "power-on, or a bag played without --clock / use_sim_time?)")
+
+
+def _read_only_at_runtime(changes) -> SetParametersResult:
+    """Refuse runtime changes of the Updater's parameters and of use_sim_time, read once at start like all of
+    ours (use_sim_time turned on later would stop the node's clock, and with it every status, until a /clock)."""
+    names = [p.name for p in changes if p.name in parameters.UPDATER_SPEC or p.name == "use_sim_time"]
     if names:
         return SetParametersResult(successful=False, reason=f"{', '.join(names)}: read-only (set at start)")
     return SetParametersResult(successful=True)
@@ -176,7 +189,7 @@ class MonitorNode(Node):
         self._updater_period_as_float()
         self.updater = diagnostic_updater.Updater(self)  # declares diagnostic_updater.period / use_fqn
         p = self._declare_parameters()
-        self.add_on_set_parameters_callback(_read_only_updater)
+        self.add_on_set_parameters_callback(_read_only_at_runtime)
         from .replay import load_segmenter, network_options
 
         segmenter = load_segmenter(self.config) if self.config.segmentation.mode == "network" else None
@@ -207,7 +220,13 @@ class MonitorNode(Node):
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_subscription(TFMessage, p["tf_static_topic"], self.monitor.add_tf_static, latched)
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)  # runs without /clock, unlike the node's
+        self._started = self._steady_s()
+        self._told = [None, None]  # the levels of Monitor.check and clock_status last said on the console
+        self._gap_since = None  # steady time (s) the extrinsic gap was first seen, None = no gap; told once
+        self._gap_told = False
         self.create_timer(CHECK_PERIOD_S, self._on_check)
+        self.create_timer(NO_CLOCK_WARN_S, self._on_steady, clock=self._steady)
         self.get_logger().info(
             f"monitoring {self.resolve_topic_name(p['points_topic'])} + {self.resolve_topic_name(p['odom_topic'])}: "
             f"window {self.monitor.window.describe()}, sensor {self.config.sensor.model or 'read off each cloud'}, "
@@ -328,9 +347,9 @@ class MonitorNode(Node):
         some = f"{topic} has {publishers} publisher{'s' * (publishers > 1)}"
         if self.monitor.last_scan_received is not None:  # clouds came through before: not a transport problem
             return f" ({some}, which sent clouds before: has the driver stopped publishing?)"
+        qos = "; points_qos reliable does not match a best-effort driver" if self.p["points_qos"] == "reliable" else ""
         return (f" ({some}: if it publishes, its clouds are lost "
-                f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md; "
-                f"points_qos reliable does not match a best-effort driver)")
+                f"on the way; a big cloud over best-effort DDS needs bigger socket buffers, docs/ros.md{qos})")
 
     def _lost_odometry_hint(self, checked: tuple[str, str]) -> str:
         """For a STALE without odometry: whether the odometry topic has publishers, and a QoS that cannot match
@@ -343,8 +362,9 @@ class MonitorNode(Node):
             return f" ({topic} has no publisher)"
         best_effort = sum(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
         if best_effort and self.p["odom_qos"] == "reliable":
-            return (f" ({topic}: {best_effort} of its {len(infos)} publishers offer best effort, which odom_qos "
-                    f"reliable never receives: set odom_qos sensor_data)")
+            who = ("its publisher offers" if len(infos) == 1 else
+                   f"{best_effort} of its {len(infos)} publishers offer{'s' * (best_effort == 1)}")
+            return f" ({topic}: {who} best effort, which odom_qos reliable never receives: set odom_qos sensor_data)"
         return ""
 
     def _monitor_values(self) -> dict:
@@ -357,8 +377,9 @@ class MonitorNode(Node):
         size in scans ("" while an automatic size is not set)."""
         size = self.monitor.window.size
         extrinsic = self.monitor.extrinsic_source
-        if self.monitor.extrinsic_note:
-            extrinsic = f"{extrinsic} ({self.monitor.extrinsic_note})"
+        why = "; ".join(filter(None, (self.monitor.extrinsic_note, self.monitor.extrinsic_gap)))
+        if why:
+            extrinsic = f"{extrinsic} ({why})"
         return {"extrinsic": extrinsic, "cloud_note": self.monitor.last_note,
                 "window_scans": "" if size is None else str(size)}
 
@@ -370,7 +391,8 @@ class MonitorNode(Node):
         if lat["windows"] == 0:
             stat.summary(DiagnosticStatus.OK, "no window since the last report")
         elif lat["max"] > p["latency_error_s"]:
-            stat.summary(DiagnosticStatus.ERROR, f"latency {lat['max']:.2f} s above {p['latency_error_s']:g} s")
+            stat.summary(DiagnosticStatus.ERROR, f"latency {lat['max']:.2f} s above {p['latency_error_s']:g} s"
+                         + time_base_hint(lat["max"]))
         elif lat["max"] > p["latency_warn_s"]:
             stat.summary(DiagnosticStatus.WARN, f"latency {lat['max']:.2f} s above {p['latency_warn_s']:g} s")
         else:
@@ -404,6 +426,40 @@ class MonitorNode(Node):
         self._checked = checked
         if changed:
             self.updater.force_update()
+        self._tell(checked)
+
+    def _tell(self, checked: tuple) -> None:
+        """The console too, not /diagnostics alone: a STALE, an every-scan-failing ERROR or a clock fault that
+        starts (after the node's first stale_after_s, when inputs not there yet are no news), and that it ended."""
+        levels = [c and c[0] for c in checked]
+        if levels == self._told or self._steady_s() - self._started < self.config.health.stale_after_s:
+            return
+        log = self.get_logger()
+        for task, now, before in zip((TASK, "clock"), checked, self._told):
+            if now is not None and now[0] != before:
+                hints = self._lost_clouds_hint(now) + self._lost_odometry_hint(now) if task == TASK else ""
+                log.warning(f"{task}: {now[0]}: {now[1]}{hints}")
+            elif now is None and before is not None:
+                log.info(f"{task}: {before} over")
+        self._told = levels
+
+    def _steady_s(self) -> float:
+        return self._steady.now().nanoseconds * 1e-9
+
+    def _on_steady(self) -> None:
+        """Every NO_CLOCK_WARN_S of steady time: say so while use_sim_time waits for a /clock that never came (the
+        node's clock stands at 0: no status, no STALE), and tell an extrinsic gap that lasted (a /tf_static
+        arriving just after the first scan closes one at once)."""
+        if self.get_parameter("use_sim_time").value and not self._now():
+            self.get_logger().warning(
+                f"use_sim_time is true but no /clock came in {NO_CLOCK_WARN_S:g} s or more: the node's clock stands "
+                "at 0, so no status goes out (play the bag with --clock, or use_sim_time:=false on a robot)")
+        gap = self.monitor.extrinsic_gap
+        now = self._steady_s()
+        self._gap_since = (self._gap_since or now) if gap else None
+        if gap and not self._gap_told and now - self._gap_since >= NO_CLOCK_WARN_S / 2:
+            self._gap_told = True
+            self.get_logger().warning(gap)
 
     def destroy_node(self) -> None:
         self.monitor.close(drain=False)
@@ -424,6 +480,9 @@ def main(args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except _rclpy.RCLError:  # SIGINT while spin sets up its wait set: the context is already shut down
+        if rclpy.ok():
+            raise
     except (ValueError, ParameterException) as e:  # a bad parameter: a clear message, not a traceback
         print(f"{NODE_NAME}: {e}", file=sys.stderr)
         code = 2
