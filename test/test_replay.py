@@ -403,6 +403,9 @@ def test_inspect_names_the_settings_it_does_not_use(office_bag, tmp_path, capsys
                             "sensor.deskew=off"]) == 0
     err = capsys.readouterr().err
     assert "window.size, health.warn_sigma, sensor.deskew has no effect here" in err, err
+    with pytest.raises(SystemExit) as stop:  # inspect makes no windows: it does not offer --window-size
+        cli.main(args + ["--window-size", "5"])
+    assert stop.value.code == 2 and "unrecognized arguments: --window-size 5" in capsys.readouterr().err
 
 
 def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, capsys):

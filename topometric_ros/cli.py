@@ -160,17 +160,20 @@ def _add_topic_args(p: argparse.ArgumentParser, whose: str) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None) -> None:
+def _add_monitor_args(p: argparse.ArgumentParser, segmentation_default: str | None = None,
+                      windows: bool = True) -> None:
+    """--config, --set, --segmentation, and --window-size where the command makes windows (not inspect)."""
     from .config import Config
 
     defaults = Config()
     p.add_argument("--config", help="YAML config (plain or ROS 2 parameter file, e.g. config/topometric.yaml; "
                                     "without it: the built-in defaults)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config leaf, e.g. window.size=10")
-    p.add_argument("--window-size", type=int, help=f"scans per window; 0 = automatic, the scans of window.duration_s "
-                                                   f"({defaults.window.duration_s:g} s) at the bag's own scan rate "
-                                                   f"(paper: 5, 10, 15; default: the config's window.size, "
-                                                   f"{defaults.window.size})")
+    if windows:
+        p.add_argument("--window-size", type=int, help=f"scans per window; 0 = automatic, the scans of "
+                                                       f"window.duration_s ({defaults.window.duration_s:g} s) at the "
+                                                       f"bag's own scan rate (paper: 5, 10, 15; default: the config's "
+                                                       f"window.size, {defaults.window.size})")
     p.add_argument("--segmentation", choices=("network", "labels", "none"), default=None,
                    help="where labels come from: network (the shipped segmentation), labels (the cloud's own label "
                         "field: simulated bags), none (every point static)"
@@ -869,7 +872,7 @@ def _add_inspect(sub) -> None:
     i.add_argument("--limit", type=_count, default=10, help="at most this many clouds (0 = all)")
     i.add_argument("--no-plot", action="store_true", help="no scan_NNNN.png")
     i.add_argument("--quiet", action="store_true", help="no progress bar")
-    _add_monitor_args(i)
+    _add_monitor_args(i, windows=False)  # no odometry, no windows
     i.set_defaults(func=cmd_inspect)
 
 
