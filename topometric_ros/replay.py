@@ -724,7 +724,7 @@ def format_table(records: list[dict], summary: dict, max_rows: int = 60) -> str:
     t0 = records[0]["start"] if records else 0.0
     has_rpe = any("rpe" in r for r in records)
     head = (f"{'win':>4} {'t_end s':>8} {'PNE':>8} {'CPV':>10} {'°/s':>6} {'m/s':>6} {'planes':>6}"
-            + (f" {'RPE':>7}" if has_rpe else ""))
+            + (f" {'RPE gt':>7}" if has_rpe else ""))  # the true RPE (ground truth), not rpe_estimate
     lines = [head + "  level  reason"]
     step = max(1, len(records) // max_rows)
     for i, r in enumerate(records):
