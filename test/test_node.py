@@ -698,8 +698,12 @@ def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):
             publisher.publish(cloud)
         got = listener.wait_for("/diagnostics", stale("which sent clouds before: has the driver stopped"), 30, node)
         assert got, [s.message for _, _, s in statuses(listener)][-3:]
-        message = next(s.message for s in got[1].status if s.name == CONSISTENCY)
+        status = next(s for s in got[1].status if s.name == CONSISTENCY)
+        message, v = status.message, values(status)
         assert message.startswith("no scans for") and "socket buffers" not in message, message
+        # no odometry ever came: the scans wait for it, and the counters say where every scan is
+        assert int(v["waiting_for_odometry"]) >= 1 and int(v["scans_in"]) == \
+            int(v["scans_processed"]) + int(v["dropped_scans"]) + int(v["waiting_for_odometry"]), v
         # no odometry either: no publisher, then one offering best effort, which odom_qos reliable never hears
         assert "(/odom has no publisher)" in message, message
         from nav_msgs.msg import Odometry

@@ -172,7 +172,8 @@ class StaticTransforms:
 
     def links(self) -> list[str]:
         """Every stored transform as "parent -> child"."""
-        return [f"{parent} -> {child}" for child, (parent, _) in self._parent.items()]
+        return [f"{parent} -> {child}" for child, (parent, _) in list(self._parent.items())]  # a snapshot: the
+        # node reads it from worker threads while its executor adds transforms
 
     def lookup(self, parent: str, child: str) -> np.ndarray | None:
         """4×4 child-to-parent pose along stored transforms, None when the frames are not connected upward."""
@@ -310,6 +311,7 @@ class Monitor:
 
     @property
     def pending_length(self) -> int:
+        """Scans waiting for odometry at (or after) their stamps."""
         return len(self._pending)
 
     def _error(self, counter: str, message: str, received: float | None = None) -> None:

@@ -381,7 +381,9 @@ class MonitorNode(Node):
         if why:
             extrinsic = f"{extrinsic} ({why})"
         return {"extrinsic": extrinsic, "cloud_note": self.monitor.last_note,
-                "window_scans": "" if size is None else str(size)}
+                "window_scans": "" if size is None else str(size),
+                "waiting_for_odometry": str(self.monitor.pending_length)}  # scans_in = processed + dropped + these
+                                                                             # + in flight
 
     def _latency_task(self, stat):
         """The Updater's 'latency': scan stamp -> window result (node clock), worst since the last report."""
