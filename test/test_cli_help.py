@@ -85,6 +85,9 @@ def test_counts_that_must_be_positive_are_refused_before_anything_runs():
                         (["simulate", "--rate", "1000", "--out", "x"],
                          "rate 1000 is more scans a second than the VLP-32C makes (it sweeps 10 times a second)"),
                         (["simulate", "--speed", "-1", "--out", "x"], "argument --speed: expected a number >= 0"),
+                        (["simulate", "--drift", "rt:1.5", "--frames", "60", "--out", "x"],  # was a drift-free bag
+                         "--frames 60 at --rate 5 Hz is 12 s: drift episodes start after 20 s and last 6-10 s; give "
+                         "--frames 130 or more, or --drift-kind noise"),
                         (["alarms", "--speeds", "1.5,0", "--out", "x"], "speeds must be > 0, got 1.5, 0.0"),
                         (["alarms", "--estimates", "sim,orb", "--out", "x"], "estimates must be among sim, kiss, got orb"),
                         (["train", "x", "--share", "Mid-360"], "argument --share: expected MODEL=FRACTION"),

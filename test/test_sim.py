@@ -177,6 +177,8 @@ def test_cli_split_writes_disjoint_train_and_test(tmp_path, capsys):
                   for split in ("train", "test")]
         assert np.linalg.norm(starts[0] - starts[1]) > 0.5
     assert "wrote 4 bags" in capsys.readouterr().out
+    assert main(["simulate", "--scene", "office1", "--frames", "3", "--quiet", "--out", str(tmp_path / "q")]) == 0
+    assert "simulate office1" not in capsys.readouterr().err  # --quiet: no progress bar
 
 
 def test_cli_rejects_bad_arguments(tmp_path, capsys):

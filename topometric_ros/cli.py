@@ -63,6 +63,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return 2
     from . import storage
 
+    short = _no_episode_fits(args)
+    if short:
+        print(f"error: {short}", file=sys.stderr)
+        return 2
     holder = next((p for p in out.resolve().parents if storage.has_metadata(p)), None)
     if holder is not None:  # the new bag would hide there: readers and the audit take the outer folder as one bag
         print(f"error: --out {args.out} is inside the bag folder {holder}; give a folder outside it", file=sys.stderr)
@@ -71,14 +75,27 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         target = out / name if len(args.sensor) > 1 else out
         cfg = replace(_sim_config(args, args.scene[0]), sensor=name)
         if not args.split:
-            print(format_summary(simulate(cfg, target)))
+            print(format_summary(simulate(cfg, target, progress=not args.quiet)))
             continue
-        summaries = simulate_split(args.scene, target, cfg, args.train, args.test)
+        summaries = simulate_split(args.scene, target, cfg, args.train, args.test, progress=not args.quiet)
         for s in summaries:
             print(f"[{s['split']}] {s['bag']}: {s['frames']} scans, {s['path_length_m']:.0f} m, {s['elapsed_s']:.1f} s")
         (target / "split.json").write_text(json.dumps(summaries, indent=2))
         print(f"wrote {len(summaries)} bags under {target} (index: {target / 'split.json'})")
     return 0
+
+
+def _no_episode_fits(args: argparse.Namespace) -> str:
+    """Why --drift asks for episodes the bag is too short to hold ("" when one can fit): they start after
+    EPISODE_WARMUP_S and last EPISODE_LENGTH_S."""
+    from .sim.drift import EPISODE_LENGTH_S, EPISODE_WARMUP_S
+
+    seconds, needed = args.frames / args.rate, EPISODE_WARMUP_S + EPISODE_LENGTH_S[0]
+    if args.drift.split(":")[0] in ("none", "") or args.drift_kind != "episodes" or seconds >= needed:
+        return ""
+    return (f"--frames {args.frames} at --rate {args.rate:g} Hz is {seconds:g} s: drift episodes start after "
+            f"{EPISODE_WARMUP_S:g} s and last {EPISODE_LENGTH_S[0]:g}-{EPISODE_LENGTH_S[1]:g} s; give --frames "
+            f"{math.ceil(needed * args.rate)} or more, or --drift-kind noise (drift from the first scan)")
 
 
 def _setting(key: str, kind: type = float):
@@ -726,6 +743,7 @@ def _add_simulate(sub) -> None:
     s.add_argument("--train", type=_count, default=2, help="train trajectories per scene with --split")
     s.add_argument("--test", type=_count, default=1, help="test trajectories per scene with --split")
     s.add_argument("--out", required=True, help="output bag directory (with --split: a parent directory)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 
 
