@@ -170,6 +170,9 @@ def test_rerun_recomputes_nothing_and_a_config_change_recomputes_all(fleet, tmp_
     fifth = audit(bags, tmp_path, changed, engine="local", progress=False)
     assert [r["bag"] for r in fifth.rows if not r["cached"]] == ["night_1", "night_2"]  # night_2: truth restored
     assert (tmp_path / "bags" / "night_1" / "metrics.png").is_file()
+    (tmp_path / "bags" / "night_3" / "audit.json").write_text('{"key": 1}')  # a manifest without its row
+    sixth = audit(bags, tmp_path, changed, engine="local", progress=False)
+    assert [r["bag"] for r in sixth.rows if not r["cached"]] == ["night_3"]
 
 
 def _descends_from_us(pid: int) -> bool:

@@ -364,9 +364,11 @@ def _cached_manifest(folder: Path, name: str, key: dict) -> dict | None:
     """The manifest of OUT/bags/<name> when it holds ``key`` and the reports its row names are there, else
     None."""
     manifest = _load_manifest(folder / name)
-    needed = ["windows.json"] + (["metrics.png"] if manifest and manifest["row"].get("metrics_png") else [])
-    ok = manifest and manifest.get("key") == key and all((folder / name / f).is_file() for f in needed)
-    return manifest if ok else None
+    row = manifest.get("row") if isinstance(manifest, dict) else None
+    if not isinstance(row, dict) or manifest.get("key") != key:
+        return None
+    needed = ["windows.json"] + (["metrics.png"] if row.get("metrics_png") else [])
+    return manifest if all((folder / name / f).is_file() for f in needed) else None
 
 
 def _moved_here(folder: Path, path: Path, name: str, key: dict) -> dict | None:

@@ -456,8 +456,8 @@ class MonitorNode(Node):
             self.get_logger().warning(
                 f"use_sim_time is true but no /clock came in {NO_CLOCK_WARN_S:g} s or more: the node's clock stands "
                 "at 0, so no status goes out (play the bag with --clock, or use_sim_time:=false on a robot)")
-        gap = self.monitor.extrinsic_gap
-        now = self._steady_s()
+        gap = self.monitor.extrinsic_gap if np.allclose(self.monitor.extrinsic, np.eye(4)) else ""  # a set
+        now = self._steady_s()                                             # window.extrinsic is the user's choice
         self._gap_since = (self._gap_since or now) if gap else None
         if gap and not self._gap_told and now - self._gap_since >= NO_CLOCK_WARN_S / 2:
             self._gap_told = True

@@ -78,6 +78,14 @@ def _speed(rate: str) -> float | None:
 
 
 # ------------------------------------------------------------------ reading (damaged bags too)
+def _stamp_time(messages: Iterator[tuple[str, int, Any]]) -> Iterator[tuple[str, int, Any]]:
+    """Messages of several recordings merged by header stamp (a sidecar odometry bag): their receive times are
+    different clocks, so each message's stamp stands in for its receive time (STALE, the odometry's coverage and
+    the clock watch then read one clock; a clock jump between the bags cannot be seen)."""
+    for topic, t_ns, msg in messages:
+        yield topic, bag.message_stamp_ns((topic, t_ns, msg)), msg
+
+
 def read_bag(path: str | Path, wanted: set[str], log: storage.ReadLog) -> Iterator[tuple[str, int, Any]]:
     """(topic, receive ns, message) of the wanted topics the bag has (others are left out), in time order.
     A damaged bag (a zeroed chunk, a truncated file, no metadata.yaml) gives every message it still holds;
@@ -195,7 +203,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     log, wall0 = storage.ReadLog(), time.perf_counter()
     wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
     _static_transforms_first(monitor, source, opt.tf_static_topic, topics)
-    messages = (bag.read_messages(source, sorted(wanted & set(topics)), log) if opt.beside
+    messages = (_stamp_time(bag.read_messages(source, sorted(wanted & set(topics)), log)) if opt.beside
                 else read_bag(bag_path, wanted, log))
     try:
         feed.run(messages, topics.get(opt.points_topic, (None, None))[1])
@@ -219,9 +227,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     if feed.bad_gt:
         notes.append(f"{feed.bad_gt} ground-truth message{'s' * (feed.bad_gt > 1)} of {opt.gt_topic} left out: "
                      f"no finite rigid transform (RPE uses the others)")
-    notes += _loss_notes(c, monitor.last_error_of, opt)
-    lead = "" if opt.beside else _clock_lead_note(monitor)  # a sidecar bag's receive times are another recording's
-    notes += [n for n in (monitor.extrinsic_note, monitor.extrinsic_gap, lead) if n]
+    notes += _loss_notes({**c, "dropped_no_pose": 0} if not c["poses_in"] else c, monitor.last_error_of, opt)
+    notes += [n for n in (monitor.extrinsic_note, monitor.extrinsic_gap, _clock_lead_note(monitor)) if n]
     notes += feed.coverage_notes(config) + rec.stale_notes(feed.first)
     if c["scans_processed"] and not records:
         notes.append(_why_no_window(c, monitor.window, monitor.last_error))
@@ -233,6 +240,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
                    sensor=config.sensor.model or "read off each cloud",
                    layout=monitor.layout, points_topic=opt.points_topic, odom_topic=opt.odom_topic)
     summary["odometry_interval_s"] = feed.odometry_interval()
+    summary["odometry_messages"] = len(feed.odometry_times)
     summary["no_scans"] = "" if summary["scans_processed"] else why_no_scans(summary, topics, config)
     summary["notes"] = [n for n in summary["notes"] if n != summary["no_scans"]]  # said once, as the reason
     summary["clock_faults"] = rec.clock_faults
@@ -252,8 +260,7 @@ class _Feed:
         self.bad_gt = 0  # ground-truth messages left out: no finite rigid transform
         self.n_scans, self.first, self.last = 0, None, None
         self.clouds: list[float | None] = [None, None]  # receive time (s) of the first and last cloud
-        self.odometry: list[float | None] = [None, None]  # of the first and last odometry message
-        self.n_odometry = 0
+        self.odometry_times: list[float] = []  # receive time (s) of every odometry message
         self.error, self.wall_s, self.reader_cpu_s = "", 0.0, 0.0  # wall_s: set by replay, flush included
         self._stale = False
         self._levels: Counter = Counter()  # the levels of rec.records[:self._counted], for the progress bar
@@ -314,16 +321,18 @@ class _Feed:
             self.rec.clock_fault(t, monitor.clock_events[-1][1], opt.hardware_id or monitor.sensor_frame)
 
     def odometry_interval(self) -> float | None:
-        """s between odometry messages on average (receive times), None with fewer than two."""
-        first, last = self.odometry
-        return (last - first) / (self.n_odometry - 1) if self.n_odometry >= 2 else None
+        """s between odometry messages (the median of the receive times' steps: a dropout does not count as the
+        rate), None with fewer than two."""
+        times = self.odometry_times
+        return float(np.median(np.diff(times))) if len(times) >= 2 else None
 
     def coverage_notes(self, config: Config) -> list[str]:
         """Where the odometry leaves clouds without poses: it starts or ends more than health.stale_after_s
         from the clouds (receive times), or comes farther apart than window.max_pose_gap_s."""
-        (c0, c1), (o0, o1) = self.clouds, self.odometry
-        if c0 is None or o0 is None:
+        (c0, c1), times = self.clouds, self.odometry_times
+        if c0 is None or not times:
             return []
+        o0, o1 = times[0], times[-1]
         notes, limit = [], config.health.stale_after_s
         if o0 - c0 > limit:
             notes.append(f"the odometry starts {o0 - c0:.1f} s after the clouds: the scans before it are not judged")
@@ -332,7 +341,7 @@ class _Feed:
                          f"{c1 - self.first:.1f} s): the scans after it are not judged")
         gap, every = config.window.max_pose_gap_s, self.odometry_interval()
         if every is not None and every > gap:
-            notes.append(_slow_odometry(every, self.n_odometry, gap))
+            notes.append(_slow_odometry(every, len(times), gap))
         return notes
 
     def _ground_truth(self, msg: Any) -> None:
@@ -356,8 +365,7 @@ class _Feed:
             self.clouds = [self.clouds[0] if self.clouds[0] is not None else t, t]
         elif topic == opt.odom_topic:
             monitor.add_odometry(msg, received=t)
-            self.n_odometry += 1
-            self.odometry = [self.odometry[0] if self.odometry[0] is not None else t, t]
+            self.odometry_times.append(t)
         elif topic == opt.gt_topic:
             self._ground_truth(msg)
         elif topic == opt.tf_static_topic:
@@ -432,7 +440,7 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
         return f"every scan failed in processing; last: {summary['last_monitor_error']}{hint}"
     every = summary.get("odometry_interval_s")
     if c["dropped_no_pose"] and every is not None and every > config.window.max_pose_gap_s:
-        return _slow_odometry(every, c["poses_in"], config.window.max_pose_gap_s)
+        return _slow_odometry(every, summary["odometry_messages"], config.window.max_pose_gap_s)
     if c["dropped_no_pose"]:
         return (f"no cloud had odometry within window.max_pose_gap_s = {config.window.max_pose_gap_s} s of its "
                 f"stamp (clouds and odometry on different clocks?); last: {summary['last_monitor_error']}")
@@ -441,22 +449,36 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
 
 def _slow_odometry(every: float, n: int, gap: float) -> str:
     """The note for odometry that comes farther apart than window.max_pose_gap_s."""
+    from .config import RANGES
+
+    top = RANGES["window.max_pose_gap_s"][1]
+    fix = (f"`--set window.max_pose_gap_s={1.5 * every:.2g}` interpolates over the gaps" if 1.5 * every <= top else
+           f"too sparse to interpolate over (window.max_pose_gap_s goes to {top:g} s)")
     return (f"the odometry comes every {every:.2f} s ({n} messages), farther apart than window.max_pose_gap_s = "
-            f"{gap:g} s: scans between two messages get no pose; `--set window.max_pose_gap_s={1.5 * every:.2g}` "
-            f"interpolates over the gaps")
+            f"{gap:g} s: scans between two messages get no pose; {fix}")
+
+
+#: s, odometry this much later than the clouds (against their stamps) is noted: a SLAM's latency is less.
+LATE_ODOMETRY_S = 2.0
 
 
 def _clock_lead_note(monitor: Monitor) -> str:
-    """A note when the clouds' stamps run health.clock_jump_s or more ahead of (or behind) the odometry's against
-    their receive times from the start (a constant offset is no clock jump, but poses are looked up at the
-    wrong time: drift alarms may be the clock)."""
+    """A note when the odometry's stamps sit off the clouds' against their receive times from the start (a
+    constant offset is no clock jump, but poses are looked up at the wrong time: drift alarms may be the clock).
+    Odometry stamped later than the clouds by health.clock_jump_s is noted (it cannot arrive before its stamp
+    unless a clock is off); odometry that arrives later is noted from LATE_ODOMETRY_S (a SLAM's latency)."""
     lead, limit = monitor.clock.lead(), monitor.config.health.clock_jump_s
-    if not np.isfinite(lead) or limit <= 0 or abs(lead) < limit:
+    if not np.isfinite(lead) or limit <= 0:
         return ""
-    way = "ahead of" if lead > 0 else "behind"
-    return (f"the cloud stamps run {abs(lead):.2f} s {way} the odometry's (against their receive times): if one "
-            "stream is stamped on another clock, the poses are looked up at the wrong time and the drift alarms "
-            "are that offset")
+    if lead <= -limit:
+        return (f"the odometry's stamps run {-lead:.2f} s ahead of the clouds' against their receive times: "
+                "stamped on another clock, its poses are looked up at the wrong time and the drift alarms may be "
+                "that offset")
+    if lead >= max(limit, LATE_ODOMETRY_S):
+        return (f"the odometry arrives {lead:.2f} s later than the clouds against their stamps: a SLAM that slow, "
+                "or odometry stamped on another clock (its poses then looked up at the wrong time, and the drift "
+                "alarms that offset)")
+    return ""
 
 
 def _baseline_notes(records: list[dict], config: Config) -> list[str]:
@@ -464,15 +486,16 @@ def _baseline_notes(records: list[dict], config: Config) -> list[str]:
     learning = [r for r in records if "learning baseline" in str(r.get("message", ""))]
     if not learning:
         return []
-    if learning[-1] is records[-1]:
-        n = len(records)
-        return [f"the PNE/CPV baselines were still being learned at the last window ({n} window{'s' * (n > 1)}, "
-                f"health.baseline_windows {config.health.baseline_windows}): PNE and CPV judged by their absolute "
-                "limits only, the drift rates as everywhere"]
+    judged = [r for r in records if np.isfinite(_num(r.get("z_pne"))) or np.isfinite(_num(r.get("z_cpv")))]
+    if not judged:
+        n = len(learning)
+        return [f"the PNE/CPV baselines were still being learned at the bag's end ({n} of the "
+                f"{config.health.baseline_windows} windows of health.baseline_windows): PNE and CPV judged by their "
+                "absolute limits only, the drift rates as everywhere"]
     alarmed = sum(r["level"] != "OK" for r in learning)
     if 2 * alarmed > len(learning):
-        return [f"{alarmed} of the {len(learning)} windows the PNE/CPV baselines were learned on alarmed: their "
-                "sigma limits are relative to a start that was already inconsistent"]
+        return [f"the PNE/CPV baselines were learned on {len(learning)} windows, {alarmed} of them WARN or ERROR: "
+                "their sigma limits are relative to a start that may already have been inconsistent"]
     return []
 
 
