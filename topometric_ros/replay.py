@@ -78,12 +78,15 @@ def _speed(rate: str) -> float | None:
 
 
 # ------------------------------------------------------------------ reading (damaged bags too)
-def _stamp_time(messages: Iterator[tuple[str, int, Any]]) -> Iterator[tuple[str, int, Any]]:
+def _one_clock(messages: Iterator[tuple[str, int, Any]]) -> Iterator[tuple[str, int, Any]]:
     """Messages of several recordings merged by header stamp (a sidecar odometry bag): their receive times are
-    different clocks, so each message's stamp stands in for its receive time (STALE, the odometry's coverage and
-    the clock watch then read one clock; a clock jump between the bags cannot be seen)."""
+    different clocks, so each topic's are moved by the offset its first message had to its stamp. STALE, the
+    odometry's coverage and the clock watch then read one clock, and a topic whose stamps jump later still
+    shows the jump."""
+    offsets: dict[str, int] = {}
     for topic, t_ns, msg in messages:
-        yield topic, bag.message_stamp_ns((topic, t_ns, msg)), msg
+        offset = offsets.setdefault(topic, t_ns - bag.message_stamp_ns((topic, t_ns, msg)))
+        yield topic, t_ns - offset, msg
 
 
 def read_bag(path: str | Path, wanted: set[str], log: storage.ReadLog) -> Iterator[tuple[str, int, Any]]:
@@ -203,7 +206,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     log, wall0 = storage.ReadLog(), time.perf_counter()
     wanted = {opt.points_topic, opt.odom_topic, opt.gt_topic, opt.tf_static_topic}
     _static_transforms_first(monitor, source, opt.tf_static_topic, topics)
-    messages = (_stamp_time(bag.read_messages(source, sorted(wanted & set(topics)), log)) if opt.beside
+    messages = (_one_clock(bag.read_messages(source, sorted(wanted & set(topics)), log)) if opt.beside
                 else read_bag(bag_path, wanted, log))
     try:
         feed.run(messages, topics.get(opt.points_topic, (None, None))[1])
