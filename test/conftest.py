@@ -32,3 +32,22 @@ def cli_exit_code():
         except SystemExit as e:
             return e.code
     return run
+
+
+@pytest.fixture
+def split_off_odometry():
+    """split(bag, recording, sidecar): /odom into a sidecar bag written at its stamps, every other topic into a
+    recording whose receive times are 1000 s later (two recordings, two receive clocks)."""
+    from topometric_ros import bag
+    from topometric_ros.cloud import stamp_seconds
+
+    def split(path, recording, sidecar):
+        with bag.BagWriter(recording) as rec, bag.BagWriter(sidecar) as side:
+            for topic, t_ns, msg in bag.read_messages(path):
+                if topic == "/odom":
+                    side.write("/odom", stamp_seconds(msg.header), msg)
+                else:
+                    rec.write(topic, t_ns * 1e-9 + 1000.0, msg)
+        return recording, sidecar
+
+    return split

@@ -60,25 +60,18 @@ def test_a_cloud_clock_jump_is_a_clock_fault_within_two_windows_and_no_drift_ala
     assert np.isfinite([w["pne"] for w in res.windows]).all()
 
 
-def test_a_cloud_clock_jump_shows_through_a_sidecar_odometry_bag_on_another_clock(tmp_path):
+def test_a_cloud_clock_jump_shows_through_a_sidecar_odometry_bag_on_another_clock(tmp_path, split_off_odometry):
     """The odometry in a sidecar bag written at its stamps, the recording's receive times 1000 s later: each
     topic's receive times are put on one clock, so the clouds' 1 s jump is still a clock fault, and no STALE or
     'odometry ends' note comes from comparing the two recordings' clocks."""
-    from topometric_ros import bag
-    from topometric_ros.cloud import stamp_seconds
     from topometric_ros.replay import ReplayOptions, replay
     from topometric_ros.sim.drift import DriftSpec
     from topometric_ros.sim.writer import START_TIME, SimConfig, simulate
 
-    path, recording, sidecar = tmp_path / "bag", tmp_path / "recording", tmp_path / "sidecar"
+    path = tmp_path / "bag"
     simulate(SimConfig(scene="office1", frames=120, clock_jump=(12.0, 1.0, 6.0), drift=DriftSpec("none")),
              path, progress=False)
-    with bag.BagWriter(recording) as rec, bag.BagWriter(sidecar) as side:
-        for topic, t_ns, msg in bag.read_messages(path):
-            if topic == "/odom":
-                side.write("/odom", stamp_seconds(msg.header), msg)
-            else:
-                rec.write(topic, t_ns * 1e-9 + 1000.0, msg)
+    recording, sidecar = split_off_odometry(path, tmp_path / "recording", tmp_path / "sidecar")
     res = replay(recording, tmp_path / "out", load_config(overrides={"segmentation.mode": "labels"}),
                  ReplayOptions(beside=(sidecar,), plot=False, progress=False))
     faults = res.summary["clock_faults"]

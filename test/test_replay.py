@@ -283,21 +283,13 @@ def replay_cli(bag_path, out, capsys, *extra):
     return code, capsys.readouterr().out, json.loads((out / "windows.json").read_text())["summary"]
 
 
-def test_a_sidecar_odometry_bag_on_another_receive_clock_still_pairs_every_scan(office_bag, tmp_path):
+def test_a_sidecar_odometry_bag_on_another_receive_clock_still_pairs_every_scan(office_bag, tmp_path,
+                                                                                 split_off_odometry):
     """The recording's receive times are its system clock (1000 s after the stamps), the sidecar odometry bag
     was written at the stamps: read beside it, every scan finds its poses (merged by header stamp; by receive
     time all odometry came first and a 1 s pose buffer had forgotten it), the same windows as the bag alone."""
-    from topometric_ros import bag
-    from topometric_ros.cloud import stamp_seconds
-
     bag_path, _ = office_bag
-    recording, sidecar = tmp_path / "recording", tmp_path / "sidecar"
-    with bag.BagWriter(recording) as rec, bag.BagWriter(sidecar) as side:
-        for topic, t_ns, msg in bag.read_messages(bag_path):
-            if topic == "/odom":
-                side.write("/odom", stamp_seconds(msg.header), msg)
-            else:
-                rec.write(topic, t_ns * 1e-9 + 1000.0, msg)
+    recording, sidecar = split_off_odometry(bag_path, tmp_path / "recording", tmp_path / "sidecar")
     config = load_config(overrides={"segmentation.mode": "labels", "window.size": 5, "window.pose_horizon_s": 1.0})
     alone = replay(bag_path, tmp_path / "alone", config, ReplayOptions(progress=False, plot=False)).summary
     both = replay(recording, tmp_path / "both", config, ReplayOptions(beside=(sidecar,), progress=False,
