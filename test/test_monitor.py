@@ -253,6 +253,31 @@ def test_bad_input_is_counted_and_survived():
     assert m.last_error
 
 
+def test_scans_missing_by_their_stamps_are_counted_from_the_streams_own_period():
+    """A 10 Hz stream with 2, then 3 scans gone (steps of 0.3 and 0.4 s): 5 missing. A 5 Hz stream (every second
+    sweep recorded) misses none; a step over a cloud that came but was left out (bad, duplicate) is not judged:
+    that cloud is counted where it failed; stamps going back start the period again."""
+    m = Monitor(config(), floor_scan, floor_window)
+    stamps = [round(0.1 * k, 3) for k in range(30) if k not in (10, 11, 20, 21, 22)]
+    for t in stamps:
+        m.add_scan(t, floor_points())
+    assert m.counters["scans_missing"] == 5
+    slow = Monitor(config(), floor_scan, floor_window)
+    for k in range(20):
+        slow.add_scan(0.2 * k, floor_points())
+    assert slow.counters["scans_missing"] == 0
+    left_out = Monitor(config(), floor_scan, floor_window)
+    for k in range(12):
+        if k == 6:
+            assert not left_out.add_scan(0.6, np.zeros((0, 3)))  # came, but empty: dropped_bad_scan
+            continue
+        left_out.add_scan(0.1 * k, floor_points())
+    assert left_out.counters["scans_missing"] == 0 and left_out.counters["dropped_bad_scan"] == 1
+    for t in (0.05, 0.25, 0.45):  # back in time: a new stream; its first steps teach the period again
+        left_out.add_scan(t, floor_points())
+    assert left_out.counters["scans_missing"] == 0
+
+
 def test_a_failing_scan_function_is_counted_not_raised():
     def flaky(frame, cfg, seg, index):
         if index % 2:

@@ -593,6 +593,27 @@ def test_use_sim_time_without_a_clock_is_said_on_the_console(ros_env, tmp_path):
     assert "a sensor clock counting from power-on" in time_base_hint(9.6e7) and time_base_hint(4.0) == ""
 
 
+def test_scans_missing_by_their_stamps_warn_in_the_scan_rate_status(ros_env):
+    """44 of 120 clouds arrived at a rate the default limits call fine: 'scan rate' says WARN with how many
+    never came; 1 of 20 missing is no WARN."""
+    from rclpy.clock import Clock, ClockType
+
+    from topometric_ros.node import ScanRate, missing_scans_text
+
+    assert missing_scans_text(44, 76).startswith("76 of 120 scans missing by their stamps: lost on the way")
+    assert missing_scans_text(19, 1) == "" and missing_scans_text(0, 0) == ""
+    lost = {"n": 0}
+    rate = ScanRate(Clock(clock_type=ClockType.STEADY_TIME), 1.0, 1000.0, missing=lambda: lost["n"])
+    for _ in range(10):
+        rate.tick()
+    lost["n"] = 20
+    time.sleep(0.2)
+    import diagnostic_updater
+
+    stat = rate.run(diagnostic_updater.DiagnosticStatusWrapper())
+    assert stat.level == b"\x01" and stat.message.startswith("20 of 30 scans missing"), (stat.level, stat.message)
+
+
 def _real_bag_with_poses() -> Path | None:
     """../shared/real-sensors' OS1-128 capture with poses (3 scans, KISS-ICP /odom, /tf_static), if here."""
     for root in (os.environ.get("TOPOMETRIC_REAL_SENSORS", ""), ROOT.parent / "shared" / "real-sensors",

@@ -731,6 +731,26 @@ def test_odometry_that_ends_before_the_clouds_is_said_not_passed_as_green(office
     assert not any(k in n for n in whole["notes"] for k in ("left out", "odometry ends", "STALE"))
 
 
+def test_clouds_missing_from_the_recording_are_said(office_bag, tmp_path):
+    """Every third cloud after the fifth left out of the recording (9 of 30): a note counts them from the stamps; the bag
+    as recorded has none."""
+    bag_path, _ = office_bag
+    count = {"n": 0}
+
+    def thin(topic, t, msg, first):
+        if topic == "/points":
+            count["n"] += 1
+            if count["n"] > 5 and count["n"] % 3 == 0:
+                return []
+        return [(topic, t, msg)]
+
+    s = _notes(_rewritten(bag_path, tmp_path / "thin", thin), tmp_path / "out")
+    assert s["counters"]["scans_missing"] == 8 and s["scans_read"] == 21  # the 9th gone is the last: no step after it
+    assert "the cloud stamps show 8 scans missing (steps of 1.6 scan periods or more" in "\n".join(s["notes"])
+    whole = _notes(bag_path, tmp_path / "whole")
+    assert whole["counters"]["scans_missing"] == 0 and not any("missing" in n for n in whole["notes"])
+
+
 def test_odometry_of_a_frame_tf_static_does_not_link_to_the_clouds_is_said(office_bag, tmp_path):
     """The odometry of base_footprint, /tf_static only base_link -> sensor: the identity extrinsic is used and
     a note says which frames are unlinked and what /tf_static holds."""

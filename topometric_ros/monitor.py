@@ -38,13 +38,15 @@ from .window import Frame, PoseBuffer, SlidingWindow
 COUNTERS = ("scans_in", "poses_in", "scans_processed", "windows", "dropped_queue_full", "dropped_no_pose",
             "dropped_duplicate", "dropped_bad_scan", "nonfinite_points", "no_return_points", "bad_beam_points",
             "scans_deskewed", "not_deskewed", "dropped_clock", "clock_fault_poses", "bad_poses", "duplicate_poses", "time_resets", "scan_errors",
-            "window_errors", "windows_discarded")
+            "window_errors", "windows_discarded", "scans_missing")
 #: Counters that are scans lost before processing.
 DROP_COUNTERS = ("dropped_queue_full", "dropped_no_pose", "dropped_duplicate", "dropped_bad_scan", "dropped_clock",
                  "scan_errors")
 MAX_CLOUD_NOTES = 8  # distinct cloud notes kept for the reports
 OTHER_CLOUD_NOTES = "other notes (more distinct ones than the reports list; the last cloud's is on the console)"
 MAX_PENDING = 256  # scans waiting for odometry, hard cap (the timeout normally bounds it far lower)
+PERIOD_GAPS = 25  # stamp steps between accepted scans the stream's scan period is the median of
+MISSING_GAP = 1.6  # a step this many periods long or more held scans that never came (a missed scan: 2; jitter: < 1.5)
 STAGE_QUEUE = 2  # live: items between two per-scan stages (the upstream stage waits when full)
 
 
@@ -263,6 +265,8 @@ class Monitor:
         self._lock = threading.Lock()
         self._pending: deque[_Scan] = deque()
         self._last_scan_stamp: float | None = None
+        self._steps: deque = deque(maxlen=PERIOD_GAPS)  # s between consecutive clouds accepted in a row
+        self._accepted_at = -1  # scans_in when the last scan was accepted
         self._reset_to: tuple[str, float] | None = None  # the last time reset: (stream, stamp it went back to)
         self._odom_child = ""
         self.sensor_frame = ""  # frame_id of the clouds (the sensor frame)
@@ -465,13 +469,27 @@ class Monitor:
                 self._error("dropped_duplicate", f"duplicate scan stamp {stamp:.3f}", clock)
                 return False
             self._time_reset(f"scan stamp went backwards to {stamp:.3f}", clock, "scans", scan.stamp)
-        self._last_scan_stamp = scan.stamp
+            self._steps.clear()
+        elif self._last_scan_stamp is not None and self._accepted_at == self._counts["scans_in"] - 1:
+            self._count_missing(scan.stamp - self._last_scan_stamp)
+        self._last_scan_stamp, self._accepted_at = scan.stamp, self._counts["scans_in"]
         self._pending.append(scan)
         while len(self._pending) > MAX_PENDING:
             lost = self._pending.popleft()
             self._error("dropped_no_pose", "too many scans waiting for odometry", lost.received)
         self._resolve_pending()
         return True
+
+    def _count_missing(self, step: float) -> None:
+        """Scans that never arrived, by the stamps: a step of k scan periods (k >= MISSING_GAP; the period the
+        median of the last PERIOD_GAPS steps between clouds accepted one after the other) held k − 1 of them.
+        Steps over a cloud left out for any reason are not judged (that cloud is counted where it failed)."""
+        if len(self._steps) >= 3:
+            period = float(np.median(self._steps))
+            if period > 0 and step >= MISSING_GAP * period:
+                self.count("scans_missing", int(round(step / period)) - 1)
+                return
+        self._steps.append(step)
 
     def _clock_fault(self, counter: str, message: str, received: float | None) -> None:
         """A message on another clock: counted and dropped; ``clock_fault`` keeps (receive time, reason) for

@@ -29,7 +29,7 @@ from . import bag, geometry, storage
 from .cloud import bad_beam_note
 from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
-from .monitor import Monitor, valid_pose
+from .monitor import MISSING_GAP, Monitor, valid_pose
 from .reports import REPORT_FILES, csv_value, write_csv, write_json
 from .window import AUTO_PROBE, SlidingWindow
 
@@ -231,6 +231,10 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
         notes.append(f"{feed.bad_gt} ground-truth message{'s' * (feed.bad_gt > 1)} of {opt.gt_topic} left out: "
                      f"no finite rigid transform (RPE uses the others)")
     notes += _loss_notes({**c, "dropped_no_pose": 0} if not c["poses_in"] else c, monitor.last_error_of, opt)
+    if c["scans_missing"]:
+        n = c["scans_missing"]
+        notes.append(f"the cloud stamps show {n} scan{'s' * (n > 1)} missing (steps of {MISSING_GAP:g} scan periods "
+                     f"or more between clouds that came one after the other): lost before or by the recording")
     notes += [n for n in (monitor.extrinsic_note, monitor.extrinsic_gap, _clock_lead_note(monitor)) if n]
     notes += feed.coverage_notes(config) + rec.stale_notes(feed.first)
     if c["scans_processed"] and not records:
