@@ -39,7 +39,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from .config import Config, flatten
-from .reports import REPORT_FILES, write_csv, write_json
+from .reports import REPORT_FILES, remove_reports, write_csv, write_json
 from .bag import bag_name, not_a_bag
 
 MANIFEST = "audit.json"
@@ -402,12 +402,10 @@ def _store(out: Path, task: BagTask, result: dict | None, error: str | None) -> 
     folder = out / "bags" / task.name
     if error is not None:  # the task raised or its worker died: no key, the next audit runs it again
         row = {"bag": task.name, "status": "failed", "reason": error, "path": task.path, "cached": False}
-        for name in REPORT_FILES:  # an earlier audit's reports are not this one's
-            (folder / name).unlink(missing_ok=True)
+        remove_reports(folder)  # an earlier audit's reports are not this one's
         write_json(folder / MANIFEST, {"key": None, "row": row})
         return row
-    for name in REPORT_FILES:
-        (folder / name).unlink(missing_ok=True)
+    remove_reports(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for name, data in result["files"].items():
         tmp = folder / f".{name}.tmp"

@@ -86,16 +86,25 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _no_episode_fits(args: argparse.Namespace) -> str:
-    """Why --drift asks for episodes the bag is too short to hold ("" when one can fit): they start after
-    EPISODE_WARMUP_S and last EPISODE_LENGTH_S."""
+    """Why --drift asks for episodes the bag is too short to hold ("" when one can fit)."""
+    from .sim.drift import EPISODE_LENGTH_S
+
+    if args.drift.split(":")[0] in ("none", "") or args.drift_kind != "episodes":
+        return ""
+    short = _too_short_for_episodes(args.frames, args.rate, f"{EPISODE_LENGTH_S[0]:g}-{EPISODE_LENGTH_S[1]:g} s")
+    return short and f"{short}, or --drift-kind noise (drift from the first scan)"
+
+
+def _too_short_for_episodes(frames: int, rate: float, lasting: str) -> str:
+    """Why ``frames`` scans at ``rate`` Hz hold no drift episode ("" when the shortest fits): episodes start after
+    EPISODE_WARMUP_S and last ``lasting`` (EPISODE_LENGTH_S, as the caller says it)."""
     from .sim.drift import EPISODE_LENGTH_S, EPISODE_WARMUP_S
 
-    seconds, needed = args.frames / args.rate, EPISODE_WARMUP_S + EPISODE_LENGTH_S[0]
-    if args.drift.split(":")[0] in ("none", "") or args.drift_kind != "episodes" or seconds >= needed:
+    seconds, needed = frames / rate, EPISODE_WARMUP_S + EPISODE_LENGTH_S[0]
+    if seconds >= needed:
         return ""
-    return (f"--frames {args.frames} at --rate {args.rate:g} Hz is {seconds:g} s: drift episodes start after "
-            f"{EPISODE_WARMUP_S:g} s and last {EPISODE_LENGTH_S[0]:g}-{EPISODE_LENGTH_S[1]:g} s; give --frames "
-            f"{math.ceil(needed * args.rate)} or more, or --drift-kind noise (drift from the first scan)")
+    return (f"--frames {frames} at --rate {rate:g} Hz is {seconds:g} s: drift episodes start after "
+            f"{EPISODE_WARMUP_S:g} s and last {lasting}; give --frames {math.ceil(needed * rate)} or more")
 
 
 def _setting(key: str, kind: type = float):
@@ -310,14 +319,11 @@ def _alarms_mode_options(args: argparse.Namespace) -> str:
 def _too_short_for_an_episode(args: argparse.Namespace) -> str:
     """Why the detection table's drift bags (``--frames`` scans at ``--rate`` Hz) can hold no drift episode ("" when
     they can, and for the calibrations, which choose from drift-free windows)."""
-    from .sim.drift import EPISODE_LENGTH_S, EPISODE_WARMUP_S
+    from .sim.drift import EPISODE_LENGTH_S
 
-    need = EPISODE_WARMUP_S + EPISODE_LENGTH_S[0]
-    if args.calibrate or args.calibrate_rates or args.frames / args.rate >= need:
+    if args.calibrate or args.calibrate_rates:
         return ""
-    return (f"--frames {args.frames} at --rate {args.rate:g} Hz is {args.frames / args.rate:g} s: drift episodes start "
-            f"after {EPISODE_WARMUP_S:g} s and last {EPISODE_LENGTH_S[0]:g} s or more; give --frames "
-            f"{math.ceil(need * args.rate)} or more")
+    return _too_short_for_episodes(args.frames, args.rate, f"{EPISODE_LENGTH_S[0]:g} s or more")
 
 
 def cmd_alarms(args: argparse.Namespace) -> int:

@@ -119,8 +119,8 @@ class ScanRate(diagnostic_updater.DiagnosticTask):
             stat.summary(DiagnosticStatus.WARN, "Frequency too low.")
         elif hz > self.high_hz * (1 + self.tolerance):
             stat.summary(DiagnosticStatus.WARN, "Frequency too high.")
-        elif missing_scans_text(events, lost):
-            stat.summary(DiagnosticStatus.WARN, missing_scans_text(events, lost))
+        elif why := missing_scans_text(events, lost):
+            stat.summary(DiagnosticStatus.WARN, why)
         else:
             stat.summary(DiagnosticStatus.OK, "Desired frequency met")
         stat.add("Events in window", str(events))

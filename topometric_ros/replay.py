@@ -30,7 +30,7 @@ from .cloud import bad_beam_note
 from .config import Config, flatten
 from .health import assessment_fields, diagnostic_array, diagnostic_status, status_name, window_values
 from .monitor import MISSING_GAP, Monitor, valid_pose
-from .reports import REPORT_FILES, csv_value, write_csv, write_json
+from .reports import csv_value, remove_reports, write_csv, write_json
 from .window import AUTO_PROBE, SlidingWindow
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -189,8 +189,7 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     bag.check_bag(bag_path)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    for name in REPORT_FILES:  # an earlier replay's reports: none may pass for this one's (an interrupted run)
-        (out / name).unlink(missing_ok=True)
+    remove_reports(out)  # an earlier replay's: none may pass for this one's (an interrupted run)
     if segmenter is None and scan_fn is None and config.segmentation.mode == "network":
         segmenter = load_segmenter(config)
     ref: list = []

@@ -15,6 +15,12 @@ import numpy as np
 REPORT_FILES = ("windows.csv", "windows.json", "metrics.png", "diagnostics.mcap")
 
 
+def remove_reports(folder: str | Path) -> None:
+    """Remove the REPORT_FILES in ``folder`` (an earlier run's), nothing else."""
+    for name in REPORT_FILES:
+        (Path(folder) / name).unlink(missing_ok=True)
+
+
 def pyplot():
     """matplotlib.pyplot on the Agg backend (no display needed; PNG files only)."""
     import matplotlib
