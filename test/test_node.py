@@ -104,11 +104,12 @@ def write_params(path: Path, values: dict) -> Path:
     return path
 
 
-def start_node(tmp: Path, params: dict, name: str = "node", extra: list[str] = ()) -> Proc:
+def start_node(tmp: Path, params: dict, name: str = "node", extra: list[str] = (),
+               env: dict | None = None) -> Proc:
     """The node as a process, with ``params`` in a parameter file (top key /**)."""
     f = write_params(tmp / f"{name}.yaml", params)
     return Proc([sys.executable, "-m", "topometric_ros.node", "--ros-args", "--params-file", str(f), *extra],
-                tmp, name)
+                tmp, name, env)
 
 
 class Listener:
@@ -676,6 +677,36 @@ def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_pat
         if player is not None:
             player.stop()
         listener.close()
+
+
+def test_every_status_says_starting_while_the_node_warms_up_and_the_inputs_wait_for_it(ros_env, tmp_path):
+    """A first start after an install (numba's cache empty: the kernels compile, tens of seconds): all four
+    statuses go out STALE 'starting' from the start, nothing is subscribed meanwhile, then the node subscribes
+    and says what it monitors."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    ours = {CONSISTENCY, f"{NODE}: scan rate", f"{NODE}: latency", f"{NODE}: clock"}
+    starting = lambda a: {s.name for s in a.status if level(s) == "STALE" and s.message.startswith(  # noqa: E731
+        "starting: warming up")} == ours
+    listener = Listener({"/diagnostics": DiagnosticArray})
+    node = start_node(tmp_path, {**BASE, "points_topic": "/warm_points"},
+                      env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+    try:
+        assert listener.wait_for("/diagnostics", starting, 60, node), [s.message for _, _, s in statuses(listener)]
+        assert "warm in" not in node.log(), "the warm-up ended before the first status: no cold cache?"
+        assert listener.node.count_subscribers("/warm_points") == 0
+        got = listener.wait_for("/diagnostics", lambda a: any(
+            s.name == CONSISTENCY and s.message.startswith("no scans yet") for s in a.status), 240, node)
+        assert got, [s.message for _, _, s in statuses(listener)][-3:]
+        assert listener.node.count_subscribers("/warm_points") == 1
+    finally:
+        node.stop()
+        listener.close()
+    log = node.log()
+    assert log.index("warm in") < log.index("monitoring /warm_points"), log[-3000:]
+    messages = [s.message for _, _, s in statuses(listener) if s.message != "Node starting up"]  # the Updater's
+    first = next(i for i, m in enumerate(messages) if not m.startswith("starting"))          # own, as a task is added
+    assert first >= 3 and all(not m.startswith("starting") for m in messages[first:]), messages
 
 
 def test_no_clouds_says_whether_the_topic_has_a_publisher(ros_env, tmp_path):

@@ -16,6 +16,9 @@ conventions (its Updater publishes on /diagnostics every ``diagnostic_updater.pe
 - ``clock``: ERROR while clouds or odometry arrive on another clock (a clock fault, not drift);
 - ``latency``: node clock minus the stamp of a window's last scan when its result is out (s).
 
+While the node warms up (monitor.warm_up, in a thread; it subscribes to its inputs after it) all four say STALE
+"starting".
+
 Optionally each window's planes go out as a MarkerArray on ~/planes (map frame, the inliers' rectangles).
 Parameters: parameters.py (the node's own, the Updater's, one read-only parameter per config leaf); a
 value out of range whatever its YAML type, a bad choice or an unknown key stops the node with exit code 2
@@ -55,6 +58,7 @@ from .monitor import Monitor, warm_up
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 CHECK_PERIOD_S = 0.25  # s (node clock), how often STALE / every-scan-failing is checked
+WARM_POLL_S = 0.1  # s (steady), how often the end of the warm-up is looked for
 NO_CLOCK_WARN_S = 5.0  # s (steady), how often a use_sim_time without /clock is said on the console
 OTHER_TIME_BASE_S = 60.0  # s, a latency this large is the stamps' time base, not processing
 MISSING_SHARE = 0.1  # more of the scans missing by their stamps than this: WARN in 'scan rate'
@@ -205,16 +209,9 @@ class MonitorNode(Node):
         self.updater = diagnostic_updater.Updater(self)  # declares diagnostic_updater.period / use_fqn
         p = self._declare_parameters()
         self.add_on_set_parameters_callback(_read_only_at_runtime)
-        from .replay import load_segmenter, network_options
+        from .replay import load_segmenter
 
         segmenter = load_segmenter(self.config) if self.config.segmentation.mode == "network" else None
-        self.get_logger().info("warming up: the pipeline's compiled kernels (the first start after an install "
-                               "compiles them: a minute or two on a small CPU; later starts load them)")
-        try:
-            seconds, _ = warm_up(self.config, segmenter)
-            self.get_logger().info(f"warm in {seconds:.1f} s")
-        except Exception as e:  # noqa: BLE001 - live data will compile what it needs; the node still runs
-            self.get_logger().warning(f"warm-up failed ({type(e).__name__}: {e}); the first scans compile instead")
         self.p = p
         self._lock = threading.Lock()
         self._last_window = None  # (level, message, values) of the newest window
@@ -222,33 +219,78 @@ class MonitorNode(Node):
         self._window_told = False  # the window's size logged (with the first window: an automatic size is set then)
         self._checked = (None, None)  # the last Monitor.check and clock_status outcomes published
         self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window)
+        self.rate: ScanRate | None = None  # made as the node subscribes
         self.updater.setHardwareID(p["hardware_id"] or "none")
-        self.updater.add(TASK, self._consistency_task)
-        self.rate = ScanRate(self.get_clock(), p["scan_rate_min_hz"], p["scan_rate_max_hz"],
-                             missing=lambda: self.monitor.counters["scans_missing"])
-        self.updater.add(self.rate)
-        self.updater.add("latency", self._latency_task)
-        self.updater.add("clock", self._clock_task)
+        for name, task in ((TASK, self._consistency_task), ("scan rate", self._scan_rate_task),
+                           ("latency", self._latency_task), ("clock", self._clock_task)):
+            self.updater.add(name, self._until_subscribed(task))
         self.marker_pub = self.create_publisher(MarkerArray, "~/planes", 1) if p["publish_markers"] else None
         self._typestore = bag.typestore()
-        self.create_subscription(PointCloud2, p["points_topic"], self._on_cloud, _qos(p["points_qos"]), raw=True)
-        self.create_subscription(Odometry, p["odom_topic"], self._on_odom, _qos(p["odom_qos"]))
-        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(TFMessage, p["tf_static_topic"], self.monitor.add_tf_static, latched)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)  # runs without /clock, unlike the node's
-        self._started = self._steady_s()
+        self._started: float | None = None  # steady s the node subscribed at (None while it warms up)
         self._told = [None, None]  # the levels of Monitor.check and clock_status last said on the console
         self._gap_since = None  # steady time (s) the extrinsic gap was first seen, None = no gap; told once
         self._gap_told = False
         self.create_timer(CHECK_PERIOD_S, self._on_check)
         self.create_timer(NO_CLOCK_WARN_S, self._on_steady, clock=self._steady)
+        self._warm, self._warm_began = threading.Event(), self._steady_s()
+        self._warm_timer = self.create_timer(WARM_POLL_S, self._on_warm, clock=self._steady)
+        self.get_logger().info("warming up: the pipeline's compiled kernels (the first start after an install "
+                               "compiles them: a minute or two on a small CPU; later starts load them); the "
+                               "statuses say 'starting' until the node subscribes")
+        threading.Thread(target=self._warm_up, args=(segmenter,), daemon=True, name="warm-up").start()
+
+    def _warm_up(self, segmenter) -> None:
+        """The warm-up thread: monitor.warm_up, then the executor's WARM_POLL_S timer subscribes (_on_warm)."""
+        try:
+            seconds, _ = warm_up(self.config, segmenter)
+            self.get_logger().info(f"warm in {seconds:.1f} s")
+        except Exception as e:  # noqa: BLE001 - live data will compile what it needs; the node still runs
+            self.get_logger().warning(f"warm-up failed ({type(e).__name__}: {e}); the first scans compile instead")
+        finally:
+            self._warm.set()
+
+    def _on_warm(self) -> None:
+        """Steady timer: once warm, subscribe to the inputs (in the executor's thread) and stop polling."""
+        if not self._warm.is_set():
+            return
+        self._warm_timer.cancel()
+        self._subscribe()
+
+    def _subscribe(self) -> None:
+        """The scan rate's count and the subscriptions start; the console says what is monitored."""
+        p = self.p
+        self.rate = ScanRate(self.get_clock(), p["scan_rate_min_hz"], p["scan_rate_max_hz"],
+                             missing=lambda: self.monitor.counters["scans_missing"])
+        self.create_subscription(PointCloud2, p["points_topic"], self._on_cloud, _qos(p["points_qos"]), raw=True)
+        self.create_subscription(Odometry, p["odom_topic"], self._on_odom, _qos(p["odom_qos"]))
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(TFMessage, p["tf_static_topic"], self.monitor.add_tf_static, latched)
+        self._started = self._steady_s()
+        from .replay import network_options
+
         self.get_logger().info(
             f"monitoring {self.resolve_topic_name(p['points_topic'])} + {self.resolve_topic_name(p['odom_topic'])}: "
             f"window {self.monitor.window.describe()}, sensor {self.config.sensor.model or 'read off each cloud'}, "
             f"segmentation {self.config.segmentation.mode}"
-            f"{network_options(self.config, getattr(segmenter, 'precision', ''))}, "
+            f"{network_options(self.config, getattr(self.monitor.segmenter, 'precision', ''))}, "
             f"diagnostics on /diagnostics as '{self.updater.node_name}: {TASK}'")
+
+    def _until_subscribed(self, task):
+        """An Updater task that says STALE 'starting' while the node warms up, then is ``task``."""
+        def run(stat):
+            if self._started is not None:
+                return task(stat)
+            stat.summary(DiagnosticStatus.STALE,
+                         f"starting: warming up the pipeline for {self._steady_s() - self._warm_began:.0f} s (the "
+                         "first start after an install compiles its kernels: a minute or two on a small CPU; later "
+                         "starts take seconds); the inputs are subscribed after it")
+            return stat
+        return run
+
+    def _scan_rate_task(self, stat):
+        return self.rate.run(stat)
 
     # ------------------------------------------------------------ parameters
     def _updater_period_as_float(self) -> None:
@@ -437,6 +479,8 @@ class MonitorNode(Node):
     def _on_check(self) -> None:
         """Publish at once when STALE / every-scan-failing / a clock fault starts or ends (the Updater repeats it);
         scans still waiting for odometry that stopped are released (Monitor.release_waiting)."""
+        if self._started is None:  # warming up: nothing subscribed yet
+            return
         now = self._now()
         self.monitor.release_waiting(now)  # the odometry stopped: scans waiting for it are scored with what came
         checked = self.monitor.check(now), self.monitor.clock_status(now)
