@@ -15,8 +15,9 @@ given segmentation mode: network by default, the product's default); this proces
   node's own counters for the rest), windows;
 - latency from a scan's publication to the window status that ends with it on /diagnostics (wall time,
   both ends on this machine; p50, p99, max): transport + pose wait + per-scan work + window scoring;
-- the node process's CPU (user + system over the run, in % of one core) and RSS (mean over the run and
-  the peak, VmHWM); the player's CPU beside it (it shares the cores).
+- the node process's CPU (user + system over the run, in % of one core) and RSS (mean over the run, its first
+  and last minute and the growth per hour between them, and the peak, VmHWM); the player's CPU beside it (it
+  shares the cores).
 
 A benchmark, not a test: needs rclpy (a sourced Jazzy); the figures go to OUT/node.json.
 """
@@ -41,6 +42,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PLAYER = ROOT / "test" / "ros_player.py"
 RATE_HZ = 10.0
 TICK = os.sysconf("SC_CLK_TCK")
+
+
+RSS_SPAN_S = 60  # s of RSS samples averaged at a run's start and end
 
 
 def _bag(seconds: float, sensor: str = "VLP-32C") -> Path:
@@ -104,6 +108,17 @@ class _Diagnostics:
     def close(self):
         self.executor.shutdown()
         self.node.destroy_node()
+
+
+def _rss_trend(rss: list[float]) -> dict:
+    """The node's RSS (MB, one sample a second) in the run's first and last RSS_SPAN_S and the growth between
+    them per hour: a long run (``python -m benchmarks.bench_node 600``) shows whether memory stays bounded."""
+    if len(rss) < 3 * RSS_SPAN_S:
+        return {}
+    first, last = statistics.mean(rss[:RSS_SPAN_S]), statistics.mean(rss[-RSS_SPAN_S:])
+    hours = (len(rss) - RSS_SPAN_S) / 3600
+    return {"node_rss_mb_first_minute": round(first, 1), "node_rss_mb_last_minute": round(last, 1),
+            "node_rss_mb_growth_per_hour": round((last - first) / hours, 1)}
 
 
 def _percentile(xs: list[float], q: float) -> float:
@@ -177,6 +192,7 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
         "node_cpu_ms_per_scan": round(1000 * cpu / max(1, counters["scans_processed"]), 1),
         "player_cpu_percent_of_one_core": round(100 * (cpu_player - cpu0_player) / wall, 1),
         "node_rss_mb_mean": round(statistics.mean(rss), 1) if rss else None, "node_rss_mb_peak": round(peak, 1),
+        **_rss_trend(rss),
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
     }
     name = "_".join([f"node_{mode}"] + ([sensor] if sensor != "VLP-32C" else [])

@@ -212,7 +212,8 @@ class Monitor:
     default to pipeline's stages and pipeline.score_window. ``stages`` splits scan_fn: the first is called
     as scan_fn is, each later one as stage(previous output, config), the last returns the ProcessedScan.
     ``on_window(result, scans)`` is called for every completed window (in the last stage's thread when
-    live). Use as a context manager, or call ``close``.
+    live); ``results`` keeps the last ``keep_results`` WindowResults (about 16 KB each) for callers without it.
+    Use as a context manager, or call ``close``.
     """
 
     def __init__(self, config: Config | None = None, scan_fn: Callable | None = None,

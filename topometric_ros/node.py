@@ -218,7 +218,8 @@ class MonitorNode(Node):
         self._latency = {"last": float("nan"), "max": float("nan"), "windows": 0}
         self._window_told = False  # the window's size logged (with the first window: an automatic size is set then)
         self._checked = (None, None)  # the last Monitor.check and clock_status outcomes published
-        self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window)
+        self.monitor = Monitor(self.config, segmenter=segmenter, live=True, on_window=self._on_window,
+                               keep_results=0)  # every window goes out through _on_window
         self.rate: ScanRate | None = None  # made as the node subscribes
         self.updater.setHardwareID(p["hardware_id"] or "none")
         for name, task in ((TASK, self._consistency_task), ("scan rate", self._scan_rate_task),

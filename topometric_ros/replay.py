@@ -196,7 +196,8 @@ def replay(bag_path: str | Path, out: str | Path, config: Config | None = None,
     rec = _Recorder(out, ref, opt.hardware_id)
     # as fast as possible: the worker thread processes every scan in order (the reader waits when it is
     # ahead), so reading and parsing overlap the per-scan work; real time: a live monitor that drops
-    monitor = Monitor(config, scan_fn, window_fn, segmenter, live=True, block=speed is None, on_window=rec.window)
+    monitor = Monitor(config, scan_fn, window_fn, segmenter, live=True, block=speed is None, on_window=rec.window,
+                      keep_results=0)  # the recorder keeps every window
     ref.append(monitor)
     notes: list[str] = []
     source = [bag_path, *opt.beside] if opt.beside else bag_path

@@ -67,6 +67,7 @@ class ReadLog:
     rows_skipped: int = 0
     recovered: int = 0
     undecodable: int = 0
+    chunks_skipped: int = 0  # MCAP chunks the index shows hold none of the wanted topics (not read)
     notes: list[str] = field(default_factory=list)
     more_notes: int = 0  # damages beyond MAX_NOTES, counted only
     _damaged: bool = False
@@ -265,6 +266,11 @@ def _string(buf: Any, pos: int, end: int) -> tuple[str, int]:
     return bytes(buf[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
 
 
+#: bytes before a chunk given back with it: a page fault maps the pages around it too (64 KiB by default), so
+#: reading a chunk maps again the end of the one before, already given back
+RELEASE_BEHIND = 1 << 21
+
+
 class _Mcap:
     """One mapped MCAP file: its schemas and channels, and its messages read tolerantly."""
 
@@ -276,7 +282,7 @@ class _Mcap:
     # ---------------------------------------------------------------- entry points
     def messages(self, wanted: set[str] | None) -> Iterator[Raw]:
         """Every readable message of the wanted topics, in log-time order (indexed) or file order."""
-        for t, cid, src, a, b in self._events():
+        for t, cid, src, a, b in self._events(wanted):
             topic, sid = self.channels[cid]
             if wanted is None or topic in wanted:
                 self.log.message()
@@ -295,13 +301,15 @@ class _Mcap:
             per[cid] = per.get(cid, 0) + 1
         return {topic: (self.schemas.get(sid, ""), per.get(cid, 0)) for cid, (topic, sid) in self.channels.items()}
 
-    def _events(self) -> Iterator[tuple[int, int, Any, int, int]]:
-        """(log time ns, channel id, buffer, data start, data end) of every readable message."""
+    def _events(self, wanted: set[str] | None = None) -> Iterator[tuple[int, int, Any, int, int]]:
+        """(log time ns, channel id, buffer, data start, data end) of every readable message; with ``wanted``
+        (topics), chunks the index shows hold none of them are not read, and chunk messages of other topics
+        may be left out."""
         summary = self._summary()
         if summary is not None and summary.chunk_indexes:
             self._learn(summary)
-            return self._indexed(summary.chunk_indexes)
-        return self._linear()
+            return self._indexed(summary.chunk_indexes, wanted)
+        return self._linear(wanted)
 
     def _summary(self) -> Any:
         """The mcap library's Summary, None when the file has none or it cannot be read (noted)."""
@@ -325,19 +333,27 @@ class _Mcap:
         self.channels.update({cid: (c.topic, c.schema_id) for cid, c in summary.channels.items()})
 
     # ---------------------------------------------------------------- with the chunk index
-    def _indexed(self, indexes: list) -> Iterator[tuple[int, int, Any, int, int]]:
+    def _indexed(self, indexes: list, wanted: set[str] | None) -> Iterator[tuple[int, int, Any, int, int]]:
         """Chunks in log-time order, their messages merged by log time (ties: file order)."""
-        heap: list = [(ci.message_start_time, 0, ci.chunk_start_offset, 0, ci) for ci in indexes]
+        heap: list = [(ci.message_start_time, 0, ci.chunk_start_offset, 0, ci) for ci in indexes
+                      if not self._none_wanted(ci, wanted)]
+        self.log.chunks_skipped += len(indexes) - len(heap)
         heapq.heapify(heap)
         while heap:
             t, kind, offset, seq, item = heapq.heappop(heap)
             if kind == 1:
                 yield item
                 continue
-            for k, msg in enumerate(sorted(self._indexed_chunk(item), key=lambda m: m[0])):
+            for k, msg in enumerate(sorted(self._indexed_chunk(item, wanted), key=lambda m: m[0])):
                 heapq.heappush(heap, (msg[0], 1, offset, k, msg))
 
-    def _indexed_chunk(self, ci: Any) -> list[tuple[int, int, Any, int, int]]:
+    def _none_wanted(self, ci: Any, wanted: set[str] | None) -> bool:
+        """The chunk's message indexes name only known channels, none of a wanted topic (no index: read it)."""
+        ids = set(ci.message_index_offsets or ())
+        return (wanted is not None and bool(ids) and ids <= self.channels.keys()
+                and not any(self.channels[cid][0] in wanted for cid in ids))
+
+    def _indexed_chunk(self, ci: Any, wanted: set[str] | None) -> list[tuple[int, int, Any, int, int]]:
         """Messages of the chunk of an index entry; its records are located from the index (not the possibly
         damaged header), checked against the header, and read record by record when anything disagrees."""
         start = ci.chunk_start_offset + 9 + 32 + len(ci.compression.encode()) + 8
@@ -346,7 +362,8 @@ class _Mcap:
                   and head.compression == ci.compression and ci.chunk_start_offset + ci.chunk_length == head.end)
         chunk = _ChunkHead(ci.message_start_time, ci.message_end_time, ci.uncompressed_size,
                            head.crc if agrees else 0, ci.compression, start, start + ci.compressed_size)
-        return self._chunk_messages(chunk, ci.chunk_start_offset, "" if agrees else "header does not match the index")
+        return self._chunk_messages(chunk, ci.chunk_start_offset, "" if agrees else "header does not match the index",
+                                    wanted)
 
     # ---------------------------------------------------------------- chunks
     def _chunk_head(self, pos: int) -> _ChunkHead | None:
@@ -368,9 +385,12 @@ class _Mcap:
         start = pos + head + n + 8
         return _ChunkHead(t0, t1, size, crc, compression, start, start + records)
 
-    def _chunk_messages(self, chunk: _ChunkHead, at: int, problem: str) -> list[tuple[int, int, Any, int, int]]:
-        """Messages of the chunk at byte ``at``: decompressed (a truncated zstd/lz4 chunk as far as it goes),
-        CRC-checked, records read one by one with a search past damaged ones; a damage is noted once."""
+    def _chunk_messages(self, chunk: _ChunkHead, at: int, problem: str, wanted: set[str] | None = None
+                        ) -> list[tuple[int, int, Any, int, int]]:
+        """Messages of the chunk at byte ``at`` (of the ``wanted`` topics; None all): decompressed (a truncated
+        zstd/lz4 chunk as far as it goes), CRC-checked, records read one by one with a search past damaged ones;
+        a damage is noted once. The chunk's mapped pages are given back (_release): messages of an uncompressed
+        chunk are copied out of the map first."""
         data, start, end, data_problem = self._chunk_data(chunk)
         skipped = self.log.bytes_skipped
         out = [] if data is None else list(self._records(data, start, end, chunk.t0, chunk.t1))
@@ -380,6 +400,11 @@ class _Mcap:
             self.log.chunks_damaged += 1
             self.log.chunks_lost += not out
             self.log.damage(f"{self.name}: chunk at byte {at}: {'; '.join(problems)}; {len(out)} messages kept")
+        if wanted is not None:
+            out = [m for m in out if self.channels.get(m[1], ("",))[0] in wanted]
+        if data is self.buf:
+            out = [(t, cid, bytes(buf[a:b]), 0, b - a) for t, cid, buf, a, b in out]
+        self._release(at, chunk.end)
         return out
 
     def _chunk_data(self, chunk: _ChunkHead) -> tuple[Any, int, int, str]:
@@ -458,7 +483,18 @@ class _Mcap:
             return False
 
     # ---------------------------------------------------------------- without the index
-    def _linear(self) -> Iterator[tuple[int, int, Any, int, int]]:
+    def _release(self, start: int, end: int) -> None:
+        """Give back the mapped pages of bytes [start, end), read already: the process's resident memory stays
+        the same over a bag of any size instead of growing by the file (they are read again from the file if
+        touched; MADV_DONTNEED on a read-only file mapping loses nothing)."""
+        if not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        start = max(0, start - RELEASE_BEHIND)
+        first, end = start - start % mmap.PAGESIZE, min(end, self.size)
+        if end > first:
+            self.buf.madvise(mmap.MADV_DONTNEED, first, end - first)
+
+    def _linear(self, wanted: set[str] | None = None) -> Iterator[tuple[int, int, Any, int, int]]:
         """Records front to back; past a damaged one, the next chunk whose header is consistent."""
         buf, pos = self.buf, len(MCAP_MAGIC)
         if bytes(buf[:8]) != MCAP_MAGIC:
@@ -471,7 +507,7 @@ class _Mcap:
                 return
             head = self._chunk_head(pos) if op == OP_CHUNK else None
             if head is not None:
-                yield from self._chunk_messages(head, pos, "")
+                yield from self._chunk_messages(head, pos, "", wanted)
                 pos = head.end
             elif self._top_record_ok(op, pos, length):
                 if op == OP_MESSAGE:
