@@ -200,3 +200,25 @@ def test_a_read_of_one_topic_leaves_out_the_chunks_the_index_shows_without_it(tm
     some = [(topic, t, bytes(raw)) for topic, _, t, raw in storage.read_raw(tmp_path / "b", {"/odom", "/tf_static"},
                                                                              storage.ReadLog())]
     assert len(every) == 61 and some == [m for m in every if m[0] != "/points"]
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="mlockall is Linux's")
+def test_a_process_with_locked_memory_reads_a_bag_whole(tmp_path, rng):
+    """A real-time process locks its memory (mlockall), where giving mapped pages back fails (EINVAL): the read
+    goes on and keeps them (in a child process: the lock would hold for this one)."""
+    import subprocess
+    import sys
+
+    types = rosbags_types(bag.typestore())
+    with bag.BagWriter(tmp_path / "b") as w:
+        for i in range(5):
+            w.write("/points", 0.1 * (i + 1), make_cloud({k: rng.normal(size=50_000).astype(np.float32) for k in "xyz"},
+                                                         0.1 * (i + 1), "lidar", types))
+    script = ("import ctypes, sys\n"
+              "if ctypes.CDLL(None).mlockall(3): sys.exit(3)\n"  # MCL_CURRENT | MCL_FUTURE
+              "from topometric_ros import storage\n"
+              f"print(len(list(storage.read_raw({str(tmp_path / 'b')!r}, None, storage.ReadLog()))))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    if out.returncode == 3:
+        pytest.skip("mlockall refused here (RLIMIT_MEMLOCK)")
+    assert out.returncode == 0 and out.stdout.strip() == "5", out.stderr[-2000:]

@@ -187,10 +187,6 @@ def values(status) -> dict:
     return {kv.key: kv.value for kv in status.values}
 
 
-def has_status(name: str):
-    return lambda arr: any(s.name == name for s in arr.status)
-
-
 def windows_of(listener: Listener) -> list[dict]:
     """One record per window (by window_end), as replay's windows.json has them."""
     seen = {}
@@ -655,7 +651,8 @@ def test_a_real_ouster_bag_through_the_node_in_the_default_mode(ros_env, tmp_pat
                 "node", env=dds)
     player = None
     try:
-        listener.wait_for("/diagnostics", has_status(CONSISTENCY), 60, node)  # the node is up
+        listener.wait_for("/diagnostics", lambda a: any(  # the node is up and has subscribed (warmed up)
+            s.name == CONSISTENCY and not s.message.startswith("starting") for s in a.status), 120, node)
         player = Proc([sys.executable, str(PLAYER), str(_real_bag_with_poses()), "--rate", "0.5", "--reliable-clouds",
                        "--wait-subscribers", "30", "--topics", "/ouster/points", "/odom", "/tf_static"],
                       tmp_path, "player", env=dds)
@@ -814,6 +811,8 @@ def test_every_scan_failing_gives_an_error_with_the_reason_within_2_s(ros_env, t
     ({"window.sise": 10}, ["unknown parameter", "window.sise"]),
     ({"segmentation.mode": "magic"}, ["segmentation.mode", "one of"]),
     ({"latency_warn_s": "-5"}, ["latency_warn_s", "out of range"]),  # a quoted number: checked once it is one
+    ({"points_topic": "velodyne points"}, ["parameter 'points_topic' = 'velodyne points' is not a topic name",
+                                           "must not contain characters"]),  # before the warm-up, not in spin
 ])
 def test_bad_parameters_stop_the_node_with_a_message_naming_them(ros_env, tmp_path, bad, words):
     node = start_node(tmp_path, {**BASE, **bad})

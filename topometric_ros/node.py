@@ -208,6 +208,7 @@ class MonitorNode(Node):
         self._updater_period_as_float()
         self.updater = diagnostic_updater.Updater(self)  # declares diagnostic_updater.period / use_fqn
         p = self._declare_parameters()
+        self._check_topic_names(p)
         self.add_on_set_parameters_callback(_read_only_at_runtime)
         from .replay import load_segmenter
 
@@ -294,6 +295,16 @@ class MonitorNode(Node):
         return self.rate.run(stat)
 
     # ------------------------------------------------------------ parameters
+    def _check_topic_names(self, p: dict) -> None:
+        """A topic parameter that is no ROS topic name stops the node at start (ValueError: exit 2), not when it
+        subscribes after the warm-up."""
+        for name in ("points_topic", "odom_topic", "tf_static_topic"):
+            try:
+                self.resolve_topic_name(p[name])
+            except _rclpy.RCLError as e:
+                why = str(e).split(", at /")[0].removeprefix("failed to resolve name: ")
+                raise ValueError(f"parameter '{name}' = {p[name]!r} is not a topic name: {why}") from None
+
     def _updater_period_as_float(self) -> None:
         """A whole number given for diagnostic_updater.period (``:=2``, YAML ``2``) as the float the Updater
         declares it as: a float parameter of ours takes one too (the Updater's own declaration would stop the

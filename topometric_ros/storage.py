@@ -492,7 +492,10 @@ class _Mcap:
         start = max(0, start - RELEASE_BEHIND)
         first, end = start - start % mmap.PAGESIZE, min(end, self.size)
         if end > first:
-            self.buf.madvise(mmap.MADV_DONTNEED, first, end - first)
+            try:
+                self.buf.madvise(mmap.MADV_DONTNEED, first, end - first)
+            except OSError:  # EINVAL on locked memory (mlockall, as real-time processes do): keep the pages
+                pass
 
     def _linear(self, wanted: set[str] | None = None) -> Iterator[tuple[int, int, Any, int, int]]:
         """Records front to back; past a damaged one, the next chunk whose header is consistent."""
