@@ -58,7 +58,6 @@ from .monitor import Monitor, warm_up
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 CHECK_PERIOD_S = 0.25  # s (node clock), how often STALE / every-scan-failing is checked
-WARM_POLL_S = 0.1  # s (steady), how often the end of the warm-up is looked for
 NO_CLOCK_WARN_S = 5.0  # s (steady), how often a use_sim_time without /clock is said on the console
 OTHER_TIME_BASE_S = 60.0  # s, a latency this large is the stamps' time base, not processing
 MISSING_SHARE = 0.1  # more of the scans missing by their stamps than this: WARN in 'scan rate'
@@ -235,32 +234,28 @@ class MonitorNode(Node):
         self._gap_told = False
         self.create_timer(CHECK_PERIOD_S, self._on_check)
         self.create_timer(NO_CLOCK_WARN_S, self._on_steady, clock=self._steady)
-        self._warm, self._warm_began = threading.Event(), self._steady_s()
-        self._warm_timer = self.create_timer(WARM_POLL_S, self._on_warm, clock=self._steady)
+        self._warm_began = self._steady_s()
+        self._warm = self.create_guard_condition(self._subscribe)  # triggered by the warm-up thread as it ends
         self.get_logger().info("warming up: the pipeline's compiled kernels (the first start after an install "
                                "compiles them: a minute or two on a small CPU; later starts load them); the "
                                "statuses say 'starting' until the node subscribes")
         threading.Thread(target=self._warm_up, args=(segmenter,), daemon=True, name="warm-up").start()
 
     def _warm_up(self, segmenter) -> None:
-        """The warm-up thread: monitor.warm_up, then the executor's WARM_POLL_S timer subscribes (_on_warm)."""
+        """The warm-up thread: monitor.warm_up, then the executor subscribes (the guard condition's callback)."""
         try:
             seconds, _ = warm_up(self.config, segmenter)
             self.get_logger().info(f"warm in {seconds:.1f} s")
         except Exception as e:  # noqa: BLE001 - live data will compile what it needs; the node still runs
             self.get_logger().warning(f"warm-up failed ({type(e).__name__}: {e}); the first scans compile instead")
         finally:
-            self._warm.set()
-
-    def _on_warm(self) -> None:
-        """Steady timer: once warm, subscribe to the inputs (in the executor's thread) and stop polling."""
-        if not self._warm.is_set():
-            return
-        self._warm_timer.cancel()
-        self._subscribe()
+            self._warm.trigger()
 
     def _subscribe(self) -> None:
-        """The scan rate's count and the subscriptions start; the console says what is monitored."""
+        """Once warm (in the executor's thread): the scan rate's count and the subscriptions start; the console
+        says what is monitored."""
+        if self._started is not None:
+            return
         p = self.p
         self.rate = ScanRate(self.get_clock(), p["scan_rate_min_hz"], p["scan_rate_max_hz"],
                              missing=lambda: self.monitor.counters["scans_missing"])

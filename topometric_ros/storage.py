@@ -407,6 +407,20 @@ class _Mcap:
         self._release(at, chunk.end)
         return out
 
+    def _release(self, start: int, end: int) -> None:
+        """Give back the mapped pages of bytes [start, end), read already: the process's resident memory stays
+        the same over a bag of any size instead of growing by the file (they are read again from the file if
+        touched; MADV_DONTNEED on a read-only file mapping loses nothing)."""
+        if not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        start = max(0, start - RELEASE_BEHIND)
+        first, end = start - start % mmap.PAGESIZE, min(end, self.size)
+        if end > first:
+            try:
+                self.buf.madvise(mmap.MADV_DONTNEED, first, end - first)
+            except OSError:  # EINVAL on locked memory (mlockall, as real-time processes do): keep the pages
+                pass
+
     def _chunk_data(self, chunk: _ChunkHead) -> tuple[Any, int, int, str]:
         """(buffer, start, end, problem): the records at buffer[start:end], in the mapped file (uncompressed)
         or in the decompressed bytes; buffer None when nothing can be decompressed."""
@@ -483,20 +497,6 @@ class _Mcap:
             return False
 
     # ---------------------------------------------------------------- without the index
-    def _release(self, start: int, end: int) -> None:
-        """Give back the mapped pages of bytes [start, end), read already: the process's resident memory stays
-        the same over a bag of any size instead of growing by the file (they are read again from the file if
-        touched; MADV_DONTNEED on a read-only file mapping loses nothing)."""
-        if not hasattr(mmap, "MADV_DONTNEED"):
-            return
-        start = max(0, start - RELEASE_BEHIND)
-        first, end = start - start % mmap.PAGESIZE, min(end, self.size)
-        if end > first:
-            try:
-                self.buf.madvise(mmap.MADV_DONTNEED, first, end - first)
-            except OSError:  # EINVAL on locked memory (mlockall, as real-time processes do): keep the pages
-                pass
-
     def _linear(self, wanted: set[str] | None = None) -> Iterator[tuple[int, int, Any, int, int]]:
         """Records front to back; past a damaged one, the next chunk whose header is consistent."""
         buf, pos = self.buf, len(MCAP_MAGIC)
