@@ -122,7 +122,7 @@ class HealthConfig:
     fail_after_s: float = 1.0  # s, scans arrive but every one fails (bad layout, no pose, ...) for this long -> ERROR with the reason
     baseline_windows: int = 10  # windows that form the robust baseline (median/MAD) before sigma alarms start
     baseline_history: int = 50  # most recent OK windows the rolling baseline keeps
-    warn_sigma: float = 6.0  # robust z above the baseline median -> WARN (`topometric alarms --calibrate`: every calibration group, floor plans 7, 9, 11-14)
+    warn_sigma: float = 6.0  # robust z above the baseline median -> WARN (`topometric alarms --calibrate` when the calibration split was floor plans 7, 9, 11-14)
     error_sigma: float = 8.0  # robust z above the baseline median -> ERROR
     warn_persist: int = 2  # WARN needs z >= warn_sigma in this many of the last persist_windows windows (1 = at once)
     persist_windows: int = 2  # windows the persistence rule looks back over (this one included)
