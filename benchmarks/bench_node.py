@@ -6,7 +6,8 @@
 e.g. ``python -m benchmarks.bench_node 60 network OS1-128 segmentation.max_beams=64``: another sensors.py model, and
 node parameters set on top of config/topometric.yaml (recorded as ``node_<mode>_<sensor>[_<key>-<value>].json``).
 
-test/ros_player.py plays the bag at real rate with /clock (clouds best effort, odometry reliable,
+test/ros_player.py plays the bag at real rate (a run longer than LOOP_S plays the LOOP_S bag again and again,
+its odometry continued: ``--loops``, so a long run needs no long bag) with /clock (clouds best effort, odometry reliable,
 /tf_static latched) into ``python -m topometric_ros.node`` (use_sim_time, config/topometric.yaml, the
 given segmentation mode: network by default, the product's default); this process listens on
 /diagnostics. Recorded:
@@ -24,6 +25,7 @@ A benchmark, not a test: needs rclpy (a sourced Jazzy); the figures go to OUT/no
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -45,6 +47,7 @@ TICK = os.sysconf("SC_CLK_TCK")
 
 
 RSS_SPAN_S = 60  # s of RSS samples averaged at a run's start and end
+LOOP_S = 120.0  # s of the longest bag simulated; longer runs loop it
 
 
 def _bag(seconds: float, sensor: str = "VLP-32C") -> Path:
@@ -111,14 +114,17 @@ class _Diagnostics:
 
 
 def _rss_trend(rss: list[float]) -> dict:
-    """The node's RSS (MB, one sample a second) in the run's first and last RSS_SPAN_S and the growth between
-    them per hour: a long run (``python -m benchmarks.bench_node 600``) shows whether memory stays bounded."""
+    """The node's RSS (MB, one sample a second) in the run's first, middle and last RSS_SPAN_S, and the growth per
+    hour from the first and from the middle to the last: a long run (``python -m benchmarks.bench_node 2400``)
+    shows whether memory stays bounded (the second half's growth near 0) or grows on."""
     if len(rss) < 3 * RSS_SPAN_S:
         return {}
-    first, last = statistics.mean(rss[:RSS_SPAN_S]), statistics.mean(rss[-RSS_SPAN_S:])
-    hours = (len(rss) - RSS_SPAN_S) / 3600
-    return {"node_rss_mb_first_minute": round(first, 1), "node_rss_mb_last_minute": round(last, 1),
-            "node_rss_mb_growth_per_hour": round((last - first) / hours, 1)}
+    mid = (len(rss) - RSS_SPAN_S) // 2
+    first, middle, last = (statistics.mean(rss[i:i + RSS_SPAN_S]) for i in (0, mid, len(rss) - RSS_SPAN_S))
+    return {"node_rss_mb_first_minute": round(first, 1), "node_rss_mb_middle_minute": round(middle, 1),
+            "node_rss_mb_last_minute": round(last, 1),
+            "node_rss_mb_growth_per_hour": round((last - first) / ((len(rss) - RSS_SPAN_S) / 3600), 1),
+            "node_rss_mb_growth_per_hour_second_half": round((last - middle) / ((len(rss) - RSS_SPAN_S - mid) / 3600), 1)}
 
 
 def _percentile(xs: list[float], q: float) -> float:
@@ -130,7 +136,8 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
     import rclpy
 
     settings = settings or {}
-    bag = _bag(seconds, sensor)
+    loops = max(1, math.ceil(seconds / LOOP_S - 1e-9))
+    bag = _bag(seconds / loops, sensor)
     work = OUT / "node_run"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -148,7 +155,7 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
     player = None
     try:
         player = subprocess.Popen([sys.executable, str(PLAYER), str(bag), "--clock", "--clock-tail", "2",
-                                   "--wait-subscribers", "120", "--log", str(work / "scans.jsonl")], env=env,
+                                   "--wait-subscribers", "120", "--loops", str(loops), "--log", str(work / "scans.jsonl")], env=env,
                                   start_new_session=True, stdout=subprocess.PIPE, stderr=open(work / "player.log", "w"))
         while not (work / "scans.jsonl").exists() or not (work / "scans.jsonl").stat().st_size:
             if player.poll() is not None:
@@ -179,7 +186,8 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
                                                    "dropped_no_pose", "scan_errors", "windows")}
     results = {
         "bag": f"garage, {sensor}, {RATE_HZ:g} Hz, {played['published'].get('/points', 0)} scans "
-               f"({played['bag_s']:.0f} s), rt:1.5 drift", "segmentation": mode, "settings": settings,
+               f"({played['bag_s']:.0f} s{f', {loops} plays of a {seconds / loops:.0f} s bag' if loops > 1 else ''}), "
+               f"rt:1.5 drift", "segmentation": mode, "settings": settings,
         "scans_published": played["published"].get("/points", 0),
         "scans_received": counters["scans_in"], "scans_processed": counters["scans_processed"],
         "dropped_transport": played["published"].get("/points", 0) - counters["scans_in"],

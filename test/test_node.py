@@ -211,6 +211,42 @@ def drift_bag(tmp_path_factory):
     return path, summary
 
 
+def test_the_player_loops_a_bag_with_its_stamps_and_odometry_continued(drift_bag):
+    """ros_player --loops (bench_node's long runs): plays back to back, one cloud period between them, the
+    odometry moved on rigidly (no pose jump at a seam beyond the bag's motion over one cloud period), /tf_static
+    once."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+
+    sys.path.insert(0, str(PLAYER.parent))
+    import ros_player
+
+    topics = ["/points", "/odom", "/tf_static"]
+    once = list(ros_player.looped_raw(drift_bag[0], topics, 1))
+    looped = list(ros_player.looped_raw(drift_bag[0], topics, 3))
+    def count(msgs, topic):
+        return sum(m[0] == topic for m in msgs)
+
+    assert count(looped, "/points") == 3 * count(once, "/points") and count(looped, "/tf_static") == 1
+    times = [t for *_, t, _ in looped]
+    assert times == sorted(times)
+    clouds = np.array([ros_player.header_stamp(raw) for topic, _, _, raw in looped if topic == "/points"])
+    assert np.allclose(np.diff(clouds), np.median(np.diff(clouds)), atol=1e-3)  # seams included
+
+    def odometry(msgs):  # (stamps s, positions) of the odometry
+        odom = [(ros_player.header_stamp(raw), deserialize_message(raw, Odometry).pose.pose.position)
+                for topic, _, _, raw in msgs if topic == "/odom"]
+        return np.array([s for s, _ in odom]), np.array([[p.x, p.y, p.z] for _, p in odom])
+
+    stamps, positions = odometry(looped)
+    assert np.all(np.diff(stamps) > 0)
+    bag_stamps, bag_positions = odometry(once)
+    per_period = int(round(np.median(np.diff(clouds)) / np.median(np.diff(bag_stamps))))
+    farthest = np.linalg.norm(bag_positions[per_period:] - bag_positions[:-per_period], axis=1).max()
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)  # the seams: within a cloud period's motion
+    assert 0 < steps.max() <= farthest
+
+
 @pytest.fixture(scope="module")
 def drift_run(ros_env, drift_bag, tmp_path_factory):
     """`topometric replay` of the bag, then the node on use_sim_time fed by the player at real rate with
