@@ -6,19 +6,21 @@
 e.g. ``python -m benchmarks.bench_node 60 network OS1-128 segmentation.max_beams=64``: another sensors.py model, and
 node parameters set on top of config/topometric.yaml (recorded as ``node_<mode>_<sensor>[_<key>-<value>].json``).
 
-test/ros_player.py plays the bag at real rate (a run longer than LOOP_S plays the LOOP_S bag again and again,
-its odometry continued: ``--loops``, so a long run needs no long bag) with /clock (clouds best effort, odometry reliable,
-/tf_static latched) into ``python -m topometric_ros.node`` (use_sim_time, config/topometric.yaml, the
-given segmentation mode: network by default, the product's default); this process listens on
-/diagnostics. Recorded:
+test/ros_player.py plays the bag at real rate with /clock (clouds best effort, odometry reliable, /tf_static
+latched; a run longer than LOOP_S plays a LOOP_S bag again and again, its odometry continued: ``--loops``, so a
+long run needs no long bag; its 1200 scans are whole 1 s windows) into ``python -m topometric_ros.node``
+(use_sim_time, config/topometric.yaml, the given segmentation mode: network by default, the product's default);
+this process listens on /diagnostics. Recorded:
 
 - scans published, received by the node, processed, dropped (transport = published - received; the
   node's own counters for the rest), windows;
 - latency from a scan's publication to the window status that ends with it on /diagnostics (wall time,
   both ends on this machine; p50, p99, max): transport + pose wait + per-scan work + window scoring;
-- the node process's CPU (user + system over the run, in % of one core) and RSS (mean over the run, its first
-  and last minute and the growth per hour between them, and the peak, VmHWM); the player's CPU beside it (it
-  shares the cores).
+- windows by level (OK / WARN / ERROR: the bag's drift episodes alarm);
+- the node process's CPU (user + system over the run, in % of one core) and RSS (mean over the run, its first,
+  middle and last minute, the growth per hour from the first and from the middle minute to the last, and the
+  peak, VmHWM; RssAnon, the heap without the mapped files, the same way); the player's CPU beside it (it shares
+  the cores).
 
 A benchmark, not a test: needs rclpy (a sourced Jazzy); the figures go to OUT/node.json.
 """
@@ -79,7 +81,7 @@ def _status_kb(pid: int, key: str) -> int:
 
 
 class _Diagnostics:
-    """Window statuses on /diagnostics: window_end -> (wall receive time, values)."""
+    """Window statuses on /diagnostics: window_end -> (wall receive time, values, level name)."""
 
     def __init__(self):
         import rclpy
@@ -88,7 +90,7 @@ class _Diagnostics:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         self.node = rclpy.create_node("bench_node_listener")
-        self.windows: dict[float, tuple[float, dict]] = {}
+        self.windows: dict[float, tuple[float, dict, str]] = {}
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on,
                                       QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE))
         self.executor = SingleThreadedExecutor()
@@ -106,14 +108,15 @@ class _Diagnostics:
         for s in arr.status:
             values = {kv.key: kv.value for kv in s.values}
             if s.name.endswith(": map consistency") and "window_end" in values:
-                self.windows.setdefault(float(values["window_end"]), (now, values))
+                level = {0: "OK", 1: "WARN", 2: "ERROR"}.get(s.level[0] if isinstance(s.level, bytes) else s.level)
+                self.windows.setdefault(float(values["window_end"]), (now, values, level))
 
     def close(self):
         self.executor.shutdown()
         self.node.destroy_node()
 
 
-def _rss_trend(rss: list[float]) -> dict:
+def _rss_trend(rss: list[float], key: str = "node_rss_mb") -> dict:
     """The node's RSS (MB, one sample a second) in the run's first, middle and last RSS_SPAN_S, and the growth per
     hour from the first and from the middle to the last: a long run (``python -m benchmarks.bench_node 2400``)
     shows whether memory stays bounded (the second half's growth near 0) or grows on."""
@@ -121,10 +124,10 @@ def _rss_trend(rss: list[float]) -> dict:
         return {}
     mid = (len(rss) - RSS_SPAN_S) // 2
     first, middle, last = (statistics.mean(rss[i:i + RSS_SPAN_S]) for i in (0, mid, len(rss) - RSS_SPAN_S))
-    return {"node_rss_mb_first_minute": round(first, 1), "node_rss_mb_middle_minute": round(middle, 1),
-            "node_rss_mb_last_minute": round(last, 1),
-            "node_rss_mb_growth_per_hour": round((last - first) / ((len(rss) - RSS_SPAN_S) / 3600), 1),
-            "node_rss_mb_growth_per_hour_second_half": round((last - middle) / ((len(rss) - RSS_SPAN_S - mid) / 3600), 1)}
+    return {f"{key}_first_minute": round(first, 1), f"{key}_middle_minute": round(middle, 1),
+            f"{key}_last_minute": round(last, 1),
+            f"{key}_growth_per_hour": round((last - first) / ((len(rss) - RSS_SPAN_S) / 3600), 1),
+            f"{key}_growth_per_hour_second_half": round((last - middle) / ((len(rss) - RSS_SPAN_S - mid) / 3600), 1)}
 
 
 def _percentile(xs: list[float], q: float) -> float:
@@ -137,7 +140,7 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
 
     settings = settings or {}
     loops = max(1, math.ceil(seconds / LOOP_S - 1e-9))
-    bag = _bag(seconds / loops, sensor)
+    bag = _bag(LOOP_S if loops > 1 else seconds, sensor)
     work = OUT / "node_run"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -155,16 +158,18 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
     player = None
     try:
         player = subprocess.Popen([sys.executable, str(PLAYER), str(bag), "--clock", "--clock-tail", "2",
-                                   "--wait-subscribers", "120", "--loops", str(loops), "--log", str(work / "scans.jsonl")], env=env,
+                                   "--wait-subscribers", "120", "--loops", str(loops),
+                                   "--log", str(work / "scans.jsonl")], env=env,
                                   start_new_session=True, stdout=subprocess.PIPE, stderr=open(work / "player.log", "w"))
         while not (work / "scans.jsonl").exists() or not (work / "scans.jsonl").stat().st_size:
             if player.poll() is not None:
                 raise RuntimeError(f"player exited early: {(work / 'player.log').read_text()[-2000:]}")
             time.sleep(0.05)
         cpu0, cpu0_player, t0 = _cpu_s(node.pid), _cpu_s(player.pid), time.monotonic()
-        rss = []
+        rss, anon = [], []
         while player.poll() is None:
             rss.append(_status_kb(node.pid, "VmRSS") / 1024)
+            anon.append(_status_kb(node.pid, "RssAnon") / 1024)
             cpu_player = _cpu_s(player.pid)
             time.sleep(1.0)
         time.sleep(3.0)  # the last windows
@@ -180,13 +185,13 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
         diag.close()
         rclpy.shutdown()
     published = {json.loads(line)["stamp"]: json.loads(line)["wall"] for line in open(work / "scans.jsonl")}
-    latencies = [1000 * (t - published[end]) for end, (t, _) in diag.windows.items() if end in published]
+    latencies = [1000 * (t - published[end]) for end, (t, *_) in diag.windows.items() if end in published]
     last = diag.windows[max(diag.windows)][1] if diag.windows else {}
     counters = {k: int(last.get(k, 0)) for k in ("scans_in", "scans_processed", "dropped_scans", "dropped_queue_full",
                                                    "dropped_no_pose", "scan_errors", "windows")}
     results = {
         "bag": f"garage, {sensor}, {RATE_HZ:g} Hz, {played['published'].get('/points', 0)} scans "
-               f"({played['bag_s']:.0f} s{f', {loops} plays of a {seconds / loops:.0f} s bag' if loops > 1 else ''}), "
+               f"({played['bag_s']:.0f} s{f', {loops} plays of a {LOOP_S:.0f} s bag' if loops > 1 else ''}), "
                f"rt:1.5 drift", "segmentation": mode, "settings": settings,
         "scans_published": played["published"].get("/points", 0),
         "scans_received": counters["scans_in"], "scans_processed": counters["scans_processed"],
@@ -200,7 +205,8 @@ def main(seconds: float = 120.0, mode: str = "network", sensor: str = "VLP-32C",
         "node_cpu_ms_per_scan": round(1000 * cpu / max(1, counters["scans_processed"]), 1),
         "player_cpu_percent_of_one_core": round(100 * (cpu_player - cpu0_player) / wall, 1),
         "node_rss_mb_mean": round(statistics.mean(rss), 1) if rss else None, "node_rss_mb_peak": round(peak, 1),
-        **_rss_trend(rss),
+        **_rss_trend(rss), **_rss_trend(anon, "node_rss_anon_mb"),
+        "windows_by_level": {lv: sum(v[2] == lv for v in diag.windows.values()) for lv in ("OK", "WARN", "ERROR")},
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
     }
     name = "_".join([f"node_{mode}"] + ([sensor] if sensor != "VLP-32C" else [])

@@ -10,14 +10,16 @@ the QoS a robot uses: /tf_static latched (reliable, transient local), clouds wit
 100 Hz while playing, and for ``--clock-tail`` s of bag time after the last message, so a node on
 ``use_sim_time`` sees time go on after its input stops. ``--loops N`` plays the bag N times back to back
 (a long live run from a short bag): each play starts one cloud period after the last ended, its stamps shifted
-so, its odometry moved rigidly to start where the last play's ended, /tf_static sent once. ``--log`` writes one JSON line per published cloud:
-its header stamp (s) and the wall time (s, time.time()) it was published. Prints a JSON summary on exit.
+so, its odometry moved rigidly to go on where the last play's was a period after its last cloud, /tf_static sent
+once (clouds, odometry and /tf_static only: other topics are refused). ``--log`` writes one JSON line per
+published cloud: its header stamp (s) and the wall time (s, time.time()) it was published. Prints a JSON summary on exit.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import json
+import math
 import struct
 import sys
 import time
@@ -30,6 +32,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from topometric_ros.geometry import inverse, pose_from_quat, pose_to_quat
 
 CLOCK_HZ = 100.0
+CLOUD, ODOMETRY = "sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Odometry"
 
 
 def message_class(msgtype: str):
@@ -70,50 +73,79 @@ def _odometry_pose(msg) -> np.ndarray:
     return pose_from_quat(np.array([q.x, q.y, q.z, q.w]), np.array([p.x, p.y, p.z]))
 
 
+def stamp_ns(raw: bytes) -> int:
+    """Header stamp (integer ns) of a CDR message that starts with std_msgs/Header."""
+    sec, nanosec = struct.unpack_from("<iI", raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 def _shift_stamp(raw: bytes, shift_ns: int) -> bytes:
     """CDR bytes of a message starting with std_msgs/Header, its stamp moved by shift_ns."""
     out = bytearray(raw)
-    ns = int(round(header_stamp(raw) * 1e9)) + shift_ns
+    ns = stamp_ns(raw) + shift_ns
     struct.pack_into("<iI", out, 4, ns // 1_000_000_000, ns % 1_000_000_000)
     return bytes(out)
 
 
-def looped_raw(bag: Path, topics: list[str], loops: int, odom_topic: str = "/odom"):
-    """read_raw over ``loops`` plays of the bag (see --loops): (topic, msgtype, log time ns, CDR bytes)."""
+def _loop_plan(bag: Path, topics: list[str]) -> tuple[int, tuple[int, int], dict]:
+    """(shift ns between plays, (from, to) header stamps ns of a middle play's odometry, {odometry topic: the 4x4
+    motion from the first cloud's stamp to one cloud period past the last}) for looped_raw."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+
+    from topometric_ros.window import PoseBuffer
+
+    clouds, odometry, other = [], {}, set()
+    for topic, msgtype, _, raw in read_raw(bag, topics):
+        if msgtype == CLOUD:
+            clouds.append(stamp_ns(raw))
+        elif msgtype == ODOMETRY:
+            odometry.setdefault(topic, PoseBuffer(horizon_s=math.inf)).add(
+                stamp_ns(raw) * 1e-9, _odometry_pose(deserialize_message(raw, Odometry)))
+        elif topic != "/tf_static":
+            other.add(topic)
+    if other or len(clouds) < 2:
+        raise ValueError(f"--loops moves clouds (2 or more) and odometry on; the bag has {len(clouds)} clouds"
+                         + (f" and {', '.join(sorted(other))} (leave out with --topics)" if other else ""))
+    period = (clouds[-1] - clouds[0]) // (len(clouds) - 1)
+    steps = {}
+    for topic, poses in odometry.items():
+        first, after_last = (poses.lookup(ns * 1e-9, 1.0, 1.0) for ns in (clouds[0], clouds[-1] + period))
+        steps[topic] = np.eye(4) if first is None or after_last is None else after_last @ inverse(first)
+    return clouds[-1] - clouds[0] + period, (clouds[0] - period // 2, clouds[-1] + period // 2), steps
+
+
+def looped_raw(bag: Path, topics: list[str], loops: int):
+    """read_raw over ``loops`` plays of the bag (see --loops): (topic, msgtype, log time ns, CDR bytes). Play k's
+    stamps and log times are shifted by k x (the clouds' span + one period); its odometry (every Odometry topic)
+    is moved rigidly so it goes on from where play k - 1's was one period after its last cloud, and the plays'
+    odometry is cut half a period outside their clouds so it meets without overlap; /tf_static goes out once."""
+    if loops < 1:
+        raise ValueError(f"--loops must be 1 or more, got {loops}")
     if loops == 1:
         yield from read_raw(bag, topics)
         return
     from nav_msgs.msg import Odometry
     from rclpy.serialization import deserialize_message, serialize_message
 
-    odometry = [(t_ns, raw) for _, _, t_ns, raw in read_raw(bag, [odom_topic])]
-    clouds = [t_ns for _, msgtype, t_ns, _ in read_raw(bag, topics) if msgtype == "sensor_msgs/msg/PointCloud2"]
-    period_ns = (clouds[-1] - clouds[0]) // max(1, len(clouds) - 1)
-    shift_ns = clouds[-1] - clouds[0] + period_ns
-    seam = (clouds[0] - period_ns // 2, clouds[-1] + period_ns // 2)  # other plays' odometry between them
-
-    def pose_at(t_ns: int) -> np.ndarray:
-        nearest = min(odometry, key=lambda m: abs(m[0] - t_ns))[1]
-        return _odometry_pose(deserialize_message(nearest, Odometry))
-
-    step = pose_at(clouds[-1]) @ inverse(pose_at(clouds[0]))  # a play's start moved onto the last play's end
-    anchor = np.eye(4)
+    shift, (cut_from, cut_to), steps = _loop_plan(bag, topics)
+    anchors = {topic: np.eye(4) for topic in steps}
     for k in range(loops):
+        keep_from, keep_to = cut_from if k else -math.inf, cut_to if k < loops - 1 else math.inf  # odometry stamps
         for topic, msgtype, t_ns, raw in read_raw(bag, topics):
             if k and topic == "/tf_static":  # latched: sent once
                 continue
-            if topic == odom_topic and ((k and t_ns < seam[0]) or (k < loops - 1 and t_ns > seam[1])):
+            if msgtype == ODOMETRY and not keep_from <= stamp_ns(raw) < keep_to:
                 continue
-            t_ns += k * shift_ns
-            if k and topic == odom_topic:
+            if k and msgtype == ODOMETRY:
                 msg = deserialize_message(raw, Odometry)
-                q, t = pose_to_quat(anchor @ _odometry_pose(msg))
+                q, t = pose_to_quat(anchors[topic] @ _odometry_pose(msg))
                 pose = msg.pose.pose
                 (pose.position.x, pose.position.y, pose.position.z) = t
                 (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w) = q
                 raw = serialize_message(msg)
-            yield topic, msgtype, t_ns, _shift_stamp(raw, k * shift_ns) if k else raw
-        anchor = anchor @ step
+            yield topic, msgtype, t_ns + k * shift, _shift_stamp(raw, k * shift) if k else raw
+        anchors = {topic: anchor @ steps[topic] for topic, anchor in anchors.items()}
 
 
 def play(args) -> dict:
@@ -196,11 +228,16 @@ def main(argv=None) -> int:
                                                                    "best effort: a test that must lose none")
     ap.add_argument("--loops", type=int, default=1, help="plays of the bag back to back (odometry continued)")
     args = ap.parse_args(argv)
+    if args.loops < 1:
+        ap.error(f"--loops must be 1 or more, got {args.loops}")
     rclpy.init()
     try:
         print(json.dumps(play(args)), flush=True)
     except KeyboardInterrupt:
         return 130
+    except ValueError as e:  # a bag --loops cannot loop
+        print(f"ros_player: {e}", file=sys.stderr)
+        return 2
     finally:
         if rclpy.ok():
             rclpy.shutdown()

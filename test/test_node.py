@@ -212,39 +212,49 @@ def drift_bag(tmp_path_factory):
 
 
 def test_the_player_loops_a_bag_with_its_stamps_and_odometry_continued(drift_bag):
-    """ros_player --loops (bench_node's long runs): plays back to back, one cloud period between them, the
-    odometry moved on rigidly (no pose jump at a seam beyond the bag's motion over one cloud period), /tf_static
-    once."""
+    """ros_player --loops (bench_node's long runs): plays back to back, one cloud period between them, in log-time
+    order, the odometry moved on rigidly (no step at a seam beyond the bag's own motion, in position and in
+    rotation, over one cloud period), /tf_static once; a bag it cannot loop is refused."""
     from nav_msgs.msg import Odometry
     from rclpy.serialization import deserialize_message
 
     sys.path.insert(0, str(PLAYER.parent))
     import ros_player
 
-    topics = ["/points", "/odom", "/tf_static"]
-    once = list(ros_player.looped_raw(drift_bag[0], topics, 1))
-    looped = list(ros_player.looped_raw(drift_bag[0], topics, 3))
+    from topometric_ros.geometry import inverse
+
+    def play(loops):  # (topic, log time ns, header stamp ns, odometry pose or None): no cloud bytes kept
+        return [(topic, t, None if topic == "/tf_static" else ros_player.stamp_ns(raw),
+                 ros_player._odometry_pose(deserialize_message(raw, Odometry)) if topic == "/odom" else None)
+                for topic, _, t, raw in ros_player.looped_raw(drift_bag[0], ["/points", "/odom", "/tf_static"], loops)]
+
+    once, looped = play(1), play(3)
+
     def count(msgs, topic):
         return sum(m[0] == topic for m in msgs)
 
     assert count(looped, "/points") == 3 * count(once, "/points") and count(looped, "/tf_static") == 1
-    times = [t for *_, t, _ in looped]
-    assert times == sorted(times)
-    clouds = np.array([ros_player.header_stamp(raw) for topic, _, _, raw in looped if topic == "/points"])
-    assert np.allclose(np.diff(clouds), np.median(np.diff(clouds)), atol=1e-3)  # seams included
+    assert [m[1] for m in looped] == sorted(m[1] for m in looped)
+    clouds = np.array([m[2] for m in looped if m[0] == "/points"])
+    assert np.all(np.abs(np.diff(clouds) - np.median(np.diff(clouds))) <= 1000)  # ns; seams included
 
-    def odometry(msgs):  # (stamps s, positions) of the odometry
-        odom = [(ros_player.header_stamp(raw), deserialize_message(raw, Odometry).pose.pose.position)
-                for topic, _, _, raw in msgs if topic == "/odom"]
-        return np.array([s for s, _ in odom]), np.array([[p.x, p.y, p.z] for _, p in odom])
+    def odometry(msgs):  # (stamps ns, poses)
+        return (np.array([m[2] for m in msgs if m[0] == "/odom"]), [m[3] for m in msgs if m[0] == "/odom"])
 
-    stamps, positions = odometry(looped)
+    def moves(poses, lag=1):  # (m, degrees) from each pose to the one lag later
+        rel = [inverse(a) @ b for a, b in zip(poses, poses[lag:])]
+        return (np.array([np.linalg.norm(r[:3, 3]) for r in rel]),
+                np.degrees([np.arccos(np.clip((np.trace(r[:3, :3]) - 1) / 2, -1, 1)) for r in rel]))
+
+    stamps, poses = odometry(looped)
     assert np.all(np.diff(stamps) > 0)
-    bag_stamps, bag_positions = odometry(once)
-    per_period = int(round(np.median(np.diff(clouds)) / np.median(np.diff(bag_stamps))))
-    farthest = np.linalg.norm(bag_positions[per_period:] - bag_positions[:-per_period], axis=1).max()
-    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)  # the seams: within a cloud period's motion
-    assert 0 < steps.max() <= farthest
+    bag_stamps, bag_poses = odometry(once)
+    lag = int(round(np.median(np.diff(clouds)) / np.median(np.diff(bag_stamps))))
+    metres, degrees = moves(poses)
+    bag_metres, bag_degrees = moves(bag_poses, lag)
+    assert 0 < metres.max() <= bag_metres.max() and degrees.max() <= bag_degrees.max()
+    with pytest.raises(ValueError, match="the bag has 0 clouds"):
+        next(ros_player.looped_raw(drift_bag[0], ["/odom", "/tf_static"], 2))
 
 
 @pytest.fixture(scope="module")
