@@ -12,7 +12,8 @@ the QoS a robot uses: /tf_static latched (reliable, transient local), clouds wit
 (a long live run from a short bag): each play starts one cloud period after the last ended, its stamps shifted
 so, its odometry moved rigidly to go on where the last play's was a period after its last cloud, /tf_static sent
 once (clouds, odometry and /tf_static only: other topics are refused). ``--log`` writes one JSON line per
-published cloud: its header stamp (s) and the wall time (s, time.time()) it was published. Prints a JSON summary on exit.
+published cloud: its header stamp (s) and the wall time (s, time.time()) it was published. Prints a JSON summary
+on exit.
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ import numpy as np
 import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from topometric_ros.geometry import inverse, pose_from_quat, pose_to_quat
+from topometric_ros.bag import odometry_pose
+from topometric_ros.geometry import inverse, pose_to_quat
 
 CLOCK_HZ = 100.0
 CLOUD, ODOMETRY = "sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Odometry"
@@ -68,11 +70,6 @@ def read_raw(bag: Path, topics: list[str]):
             yield conn.topic, conn.msgtype, t_ns, bytes(raw)
 
 
-def _odometry_pose(msg) -> np.ndarray:
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    return pose_from_quat(np.array([q.x, q.y, q.z, q.w]), np.array([p.x, p.y, p.z]))
-
-
 def stamp_ns(raw: bytes) -> int:
     """Header stamp (integer ns) of a CDR message that starts with std_msgs/Header."""
     sec, nanosec = struct.unpack_from("<iI", raw, 4)
@@ -101,7 +98,7 @@ def _loop_plan(bag: Path, topics: list[str]) -> tuple[int, tuple[int, int], dict
             clouds.append(stamp_ns(raw))
         elif msgtype == ODOMETRY:
             odometry.setdefault(topic, PoseBuffer(horizon_s=math.inf)).add(
-                stamp_ns(raw) * 1e-9, _odometry_pose(deserialize_message(raw, Odometry)))
+                *odometry_pose(deserialize_message(raw, Odometry)))
         elif topic != "/tf_static":
             other.add(topic)
     if other or len(clouds) < 2:
@@ -139,7 +136,7 @@ def looped_raw(bag: Path, topics: list[str], loops: int):
                 continue
             if k and msgtype == ODOMETRY:
                 msg = deserialize_message(raw, Odometry)
-                q, t = pose_to_quat(anchors[topic] @ _odometry_pose(msg))
+                q, t = pose_to_quat(anchors[topic] @ odometry_pose(msg)[1])
                 pose = msg.pose.pose
                 (pose.position.x, pose.position.y, pose.position.z) = t
                 (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w) = q

@@ -221,11 +221,12 @@ def test_the_player_loops_a_bag_with_its_stamps_and_odometry_continued(drift_bag
     sys.path.insert(0, str(PLAYER.parent))
     import ros_player
 
-    from topometric_ros.geometry import inverse
+    from topometric_ros.bag import odometry_pose
+    from topometric_ros.geometry import inverse, rotation_angle
 
     def play(loops):  # (topic, log time ns, header stamp ns, odometry pose or None): no cloud bytes kept
         return [(topic, t, None if topic == "/tf_static" else ros_player.stamp_ns(raw),
-                 ros_player._odometry_pose(deserialize_message(raw, Odometry)) if topic == "/odom" else None)
+                 odometry_pose(deserialize_message(raw, Odometry))[1] if topic == "/odom" else None)
                 for topic, _, t, raw in ros_player.looped_raw(drift_bag[0], ["/points", "/odom", "/tf_static"], loops)]
 
     once, looped = play(1), play(3)
@@ -242,9 +243,8 @@ def test_the_player_loops_a_bag_with_its_stamps_and_odometry_continued(drift_bag
         return (np.array([m[2] for m in msgs if m[0] == "/odom"]), [m[3] for m in msgs if m[0] == "/odom"])
 
     def moves(poses, lag=1):  # (m, degrees) from each pose to the one lag later
-        rel = [inverse(a) @ b for a, b in zip(poses, poses[lag:])]
-        return (np.array([np.linalg.norm(r[:3, 3]) for r in rel]),
-                np.degrees([np.arccos(np.clip((np.trace(r[:3, :3]) - 1) / 2, -1, 1)) for r in rel]))
+        rel = inverse(np.array(poses[:-lag])) @ np.array(poses[lag:])
+        return np.linalg.norm(rel[:, :3, 3], axis=1), np.degrees(rotation_angle(rel[:, :3, :3]))
 
     stamps, poses = odometry(looped)
     assert np.all(np.diff(stamps) > 0)
