@@ -79,3 +79,43 @@ def test_a_cloud_clock_jump_shows_through_a_sidecar_odometry_bag_on_another_cloc
     assert faults[0]["received"] - (START_TIME + 12.0) <= 2.0
     assert [w["level"] for w in res.windows] == ["OK"] * len(res.windows)
     assert not any(k in n for n in res.summary["notes"] for k in ("odometry ends", "STALE")), res.summary["notes"]
+
+
+def _steady(w: ClockWatch, t: float = 100.0) -> None:
+    """Odometry stamped at arrival and clouds 0.1 s before theirs: both fit."""
+    for k in range(10):
+        assert w.odometry(t + 0.05 * k, t + 0.05 * k) == "" and w.cloud(t + 0.05 * k - 0.1, t + 0.05 * k) == ""
+
+
+def test_odometry_stamps_that_jump_back_are_a_clock_fault():
+    w = ClockWatch(0.5)
+    _steady(w)
+    assert "odometry stamps jumped -6.00 s" in w.odometry(95.0, 101.0)
+
+
+def test_odometry_faults_that_scatter_never_become_the_clock():
+    """Twice RELEARN odometry faults, 5 s and 10 s ahead by turns: no one new clock, so all stay faults."""
+    w = ClockWatch(0.5)
+    _steady(w)
+    t = 101.0 + 0.05 * np.arange(2 * ClockWatch.RELEARN)
+    results = [w.odometry(s + (5.0 if k % 2 else 10.0), s) for k, s in enumerate(t)]
+    assert all("odometry stamps jumped" in r for r in results), results
+
+
+def test_clouds_on_another_clock_stay_faults_however_many_come():
+    w = ClockWatch(0.5)
+    _steady(w)
+    results = [w.cloud(101.0 + 0.2 * k + 0.9, 101.0 + 0.2 * k) for k in range(30)]  # 1 s ahead of the others
+    assert all("cloud stamps jumped +1.00 s" in r for r in results), results
+    assert w.cloud(108.0 - 0.1, 108.0) == ""  # back on the clock
+
+
+def test_right_after_a_clock_step_is_learned_the_old_clock_is_a_fault():
+    """The RELEARN-th odometry message on the stepped clock makes it the clock: the very next cloud or odometry
+    message on the old one is a fault."""
+    w = ClockWatch(0.5)
+    _steady(w)
+    results = [w.odometry(1101.0 + 0.05 * k, 101.0 + 0.05 * k) for k in range(ClockWatch.RELEARN)]
+    assert results[-1] == "" and all("jumped" in r for r in results[:-1])
+    assert "cloud stamps jumped -1000.00 s" in w.cloud(102.0 - 0.1, 102.0)
+    assert "odometry stamps jumped -1000.00 s" in w.odometry(102.05, 102.05)

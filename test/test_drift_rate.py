@@ -129,6 +129,16 @@ def test_rpe_estimate_matches_the_rpe_of_poses_drifting_at_those_rates():
     assert got == pytest.approx(rpe(gt, est), rel=0.1)  # the small-error form leaves out the lever arm
 
 
+def test_rpe_estimate_of_a_pure_rotation_drift_is_root_two_omega_dt():
+    """A sensor at rest whose pose turns at 2 °/s: each pair's error ‖R(ω Δt) − I‖_F = 2√2 sin(ω Δt / 2) ≈ √2 ω Δt."""
+    omega = np.radians([0.0, 0.0, 2.0])
+    est = np.stack([geometry.make_pose(geometry.rotvec_to_matrix(omega * t), [0.0, 0.0, 0.0]) for t in TIMES])
+    got = dr.rpe_estimate(2.0, 0.0, TIMES)
+    assert got == pytest.approx(math.sqrt(2) * math.radians(2.0) * 0.2, rel=1e-12)
+    assert got == pytest.approx(rpe(np.repeat(np.eye(4)[None], len(TIMES), 0), est), rel=1e-4)
+    assert dr.rpe_estimate(2.0, 0.0, TIMES[::-1]) == pytest.approx(got, rel=1e-12)  # the scans in any order
+
+
 def _turning_track(times, speed=3.0, turn_deg_s=40.0):
     """Ground-truth sensor poses (map frame, 1 m up) of a robot driving at ``speed`` m/s on an arc turning
     ``turn_deg_s`` (0: straight ahead along x)."""
@@ -167,6 +177,39 @@ def test_true_drift_rates_read_a_body_frame_drift_exactly_and_average_out_jitter
     tc = times - times.mean()
     assert dr.true_drift_rates(straight, late, times) == pytest.approx((0.0, 0.03 * tc[-1] / (tc @ tc)), abs=1e-12)
     assert 0.03 * tc[-1] / (tc @ tc) < 0.5 * 0.03 / times[-1]  # 0.016 m/s; through the endpoints 0.033
+
+
+def test_drift_integrals_follow_the_scans_in_time_order_whatever_order_they_come_in():
+    times = np.arange(8) * 0.1
+    poses = geometry.relative_to_first(_turning_track(times))
+    turned, swept = dr.drift_integrals(times, poses)
+    shuffle = np.random.default_rng(2).permutation(len(times))
+    shuffled = dr.drift_integrals(times[shuffle], poses[shuffle])
+    np.testing.assert_allclose(shuffled[0], turned[shuffle], atol=1e-12)
+    np.testing.assert_allclose(shuffled[1], swept[shuffle], atol=1e-12)
+
+
+def test_true_drift_rates_of_a_window_without_time_span_are_nan():
+    poses = _turning_track(np.arange(3) * 0.1)
+    assert np.isnan(dr.true_drift_rates(poses, poses, np.full(3, 5.0))).all()
+
+
+def test_rates_and_their_standard_errors_do_not_depend_on_how_the_scans_are_numbered():
+    """The same noisy window with its scans numbered in another order (times moved with them): the same rates
+    and the same jackknife standard errors."""
+    times = np.arange(10) * 0.1
+    rng = np.random.default_rng(11)
+    cls, scans, normals, means, scatters, counts = window((0, 0, 0), (0.2, 0, 0), times=times)
+    means = means + rng.normal(0, 0.02, (len(times), 3))[scans]
+    ref = dr.drift_rates(cpv_mod.coplane_groups(cls, scans, normals, means, scatters, counts), scans, normals, means,
+                         counts, times)
+    assert ref[3] > 1e-3
+    perm = rng.permutation(len(times))
+    renamed, moved = perm[scans], np.empty_like(times)
+    moved[perm] = times
+    got = dr.drift_rates(cpv_mod.coplane_groups(cls, renamed, normals, means, scatters, counts), renamed, normals,
+                         means, counts, moved)
+    assert got == pytest.approx(ref, rel=1e-9)
 
 
 def test_absolute_rate_limits_raise_at_once_and_name_the_drift():

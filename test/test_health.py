@@ -352,3 +352,90 @@ def test_pose_noise_is_a_warn_of_its_own_when_the_rates_scatter_more_than_the_li
     assert Health(c).assess(r).level == "WARN" and r.message.startswith("pose noise: rotation drift 0.8 ± 1.1 °/s")
     assert Health(c).assess(_moving(rot=0.8, rot_se=0.9)).level == "OK"
     assert Health(replace(c, noise_warn=0.0)).assess(_moving(rot=0.8, rot_se=1.1)).level == "OK"
+
+
+def test_the_baseline_spread_is_1_4826_mad():
+    h = Health(HealthConfig(baseline_windows=5, pne_min_sigma=0.0, warn_persist=1))
+    for pne in (1.0, 2.0, 3.0, 4.0, 5.0):
+        h.assess(result(pne=pne))
+    assert h.baseline("pne") == (3.0, pytest.approx(1.4826))  # MAD 1
+
+
+def test_a_window_alarmed_for_another_reason_does_not_teach_the_baseline():
+    """Too few planes (WARN) with a calm PNE (1σ): 30 such windows leave the baseline as it was."""
+    h = learned()
+    before = h.baseline("pne")
+    for _ in range(30):
+        assert h.assess(result(pne=before[0] + before[1], n_planes=1)).level == "WARN"
+    assert h.baseline("pne") == before
+
+
+def test_warn_at_and_error_at_are_the_lower_of_the_sigma_and_the_absolute_limit():
+    h = learned(HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=1, pne_warn=1.2,
+                             pne_error=50.0))
+    med, sigma = h.baseline("pne")
+    assert med + 4 * sigma > 1.2 and med + 8 * sigma < 50.0
+    a = h.assess(result(pne=med))
+    assert a.warn_at["pne"] == pytest.approx(1.2) and a.error_at["pne"] == pytest.approx(med + 8 * sigma)
+
+
+def test_a_cpv_of_zero_is_taken_at_the_tiny_floor():
+    """A noise-free window can give CPV 0 exactly: compared as ln 1e-12, not −∞."""
+    h = Health(HealthConfig(baseline_windows=3, warn_persist=1))
+    for _ in range(3):
+        h.assess(result(cpv=0.0))
+    assert h.baseline("cpv")[0] == pytest.approx(np.log(1e-12))
+    a = h.assess(result(cpv=0.0))
+    assert a.level == "OK" and a.z["cpv"] == 0.0
+
+
+def test_persistence_counts_its_windows_over_the_last_persist_windows():
+    """warn_persist 2 of persist_windows 3: odd, normal, odd alarms on the second odd window."""
+    cfg = HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=2, persist_windows=3,
+                       pne_min_sigma=0.5)
+    h = learned(cfg)
+    med, sigma = h.baseline("pne")
+    assert h.assess(result(pne=med + 6 * sigma)).level == "OK"
+    assert h.assess(result(pne=med)).level == "OK"
+    second = result(pne=med + 6 * sigma)
+    assert h.assess(second).level == "WARN" and "2 of the last 3" in second.message
+
+
+def test_a_cpv_alarm_is_named_by_the_drift_rate_nearer_its_limit():
+    """Rates under their limits (0.5 °/s, 0.04 m/s standing still): at 80 % of the rotation limit and 10 % of the
+    translation one a CPV rise is rotation drift; the other way round, translation drift."""
+    h = learned(HealthConfig(baseline_windows=10, warn_sigma=4.0, error_sigma=8.0, warn_persist=1, noise_windows=0,
+                             rate_persist=1))
+    (pne_med, _), (med, sigma) = h.baseline("pne"), h.baseline("cpv")
+
+    def message(rot, trans):
+        r = WindowResult([0.0, 0.8], pne=pne_med, cpv=float(np.exp(med + 5 * sigma)), n_planes=20, n_groups=5,
+                         rot_rate=rot, trans_rate=trans, speed=0.0, turn_rate=0.0)
+        copy.deepcopy(h).assess(r)
+        return r.message
+
+    assert message(0.4, 0.004).startswith("rotation drift: CPV 5.0σ")
+    assert message(0.05, 0.032).startswith("translation drift: CPV 5.0σ")
+
+
+def test_the_noise_floor_is_the_margin_times_the_quantile_of_the_rates_above_the_motion_share():
+    """At 10 m/s the motion share of the rotation limit is 0.5 °/s; rates 0.5 + 0.3 .. 0.6 °/s: the floor is
+    2 × the 0.75-quantile of 0.3 .. 0.6 = 1.05 °/s."""
+    c = HealthConfig(noise_windows=15, warn_persist=1, rate_persist=1, noise_quantile=0.75, noise_margin=2.0,
+                     noise_max_factor=3.0, rot_per_m=0.05, rot_per_deg=0.0)
+    h = Health(c)
+    for excess in np.linspace(0.3, 0.6, 15):
+        h.assess(_moving(rot=0.5 + excess, speed=10.0))
+    assert h.rates.limits(_moving())["rot_rate"][0] == pytest.approx(1.05)
+
+
+def test_a_rate_at_its_warn_limit_warns():
+    c = HealthConfig(noise_windows=0, warn_persist=1, rot_floor=1.0, rate_persist=1)
+    assert Health(c).assess(_moving(rot=1.0)).level == "WARN"
+
+
+def test_a_pose_jump_names_its_scan_counting_from_one():
+    r = WindowResult([10.0, 10.2, 10.4, 10.6, 10.8], pne=1.0, cpv=0.01, n_planes=20, n_groups=5, agreement=0.3,
+                     agreement_scan=2)
+    Health(HealthConfig()).assess(r)
+    assert r.level == "WARN" and "pose jump: scan 3 of 5 (stamp 10.40)" in r.message

@@ -438,6 +438,19 @@ def test_stale_when_input_stops_in_the_callers_clock():
     assert level == "STALE" and "scans" in why
 
 
+def test_a_clock_fault_is_an_error_status_for_stale_after_s_then_clears():
+    m = Monitor(config(**{"health.stale_after_s": 2.0, "health.clock_jump_s": 0.5}), floor_scan, floor_window)
+    for k in range(10):
+        m.add_pose(100.0 + 0.05 * k, base_pose(100.0 + 0.05 * k), received=100.0 + 0.05 * k)
+    for t in (100.1, 100.2, 100.3):
+        assert m.add_scan(t - 0.1, floor_points(), received=t)
+    assert m.clock_status(100.4) is None
+    assert not m.add_scan(101.9, floor_points(), received=101.0)  # stamped 1 s ahead of its clock: dropped
+    level, why = m.clock_status(102.9)
+    assert level == "ERROR" and "cloud stamps jumped +1.00 s" in why
+    assert m.clock_status(103.5) is None  # 2.5 s after the fault
+
+
 @pytest.fixture(scope="module")
 def sim_frames():
     from topometric_ros.sim.frames import simulated_frames

@@ -82,6 +82,27 @@ def test_pne_weighted_mean_over_clusters():
     assert both == pytest.approx((2 * hz + 6 * hx) / 8, abs=1e-12)
 
 
+def test_pne_matches_analytic_two_normal_spread_with_unequal_weights():
+    """Weights 1 and 3: the mean direction is the principal axis at φ, tan 2φ = (w1 − w2) sin 2a / (W cos 2a),
+    and the tangent variance the weighted population variance w1 w2 / W² (s1 − s2)² about the weighted mean."""
+    a, (w1, w2) = math.radians(7.0), (1.0, 3.0)
+    phi = 0.5 * math.atan2((w1 - w2) * math.sin(2 * a), (w1 + w2) * math.cos(2 * a))
+    var = w1 * w2 / (w1 + w2) ** 2 * (math.sin(a - phi) - math.sin(-a - phi)) ** 2
+    h = pne_mod.pne(tilted([a, -a]), np.array([w1, w2]))
+    assert h == pytest.approx(0.5 * math.log((2 * math.pi * math.e) ** 2 * (var + FLOOR**2) * FLOOR**2), abs=1e-12)
+    twice = pne_mod.pne(tilted([a, -a]), np.array([1.0, 2.0]))
+    assert pne_mod.pne(tilted([a, -a, -a]), np.ones(3)) == pytest.approx(twice, abs=1e-12)  # weight 2: two copies
+
+
+def test_the_heaviest_normal_seeds_its_cluster():
+    """0°, 10°, 20° with the 0° one heaviest: its cluster (15°) takes 0° and 10°; 20° is left a singleton.
+    A light seed at 10° would have swallowed all three."""
+    normals, weights = tilted(np.radians([0.0, 10.0, 20.0])), np.array([10.0, 1.0, 1.0])
+    clusters = pne_mod.pne_clusters(normals, weights)
+    assert [sorted(c.members) for c in clusters] == [[0, 1]]
+    assert pne_mod.pne(normals, weights) == pytest.approx(pne_mod.pne(normals[:2], weights[:2]), abs=1e-12)
+
+
 # ---------------------------------------------------------------- CPV
 def plane_points(rng, n, offset, sigma, normal=(0.0, 0.0, 1.0), extent=8.0):
     """n points on the plane normal·x = offset (in-plane square of side ``extent``) with N(0, σ²) noise."""
@@ -144,6 +165,56 @@ def test_cpv_segments_of_one_wall_form_one_group_without_blowup(rng):
             scans.append(scan)
     groups = cpv_mod.coplane_groups(*planes_arrays(planes, scans))
     assert len(groups) == 1 and len(groups[0].members) == 45
+
+
+def test_pooled_covariance_is_the_population_covariance_of_the_union(rng):
+    sets = [rng.normal(size=(k, 3)) * [1.0, 2.0, 0.5] + rng.normal(size=3) for k in (3, 5, 4)]
+    means = np.array([p.mean(axis=0) for p in sets])
+    scatters = np.array([(p - p.mean(axis=0)).T @ (p - p.mean(axis=0)) for p in sets])
+    mean, cov = cpv_mod.pooled_covariance([len(p) for p in sets], means, scatters)
+    union = np.concatenate(sets)
+    np.testing.assert_allclose(mean, union.mean(axis=0), atol=1e-12)
+    np.testing.assert_allclose(cov, np.cov(union.T, bias=True), atol=1e-12)
+
+
+def _flat_planes(offsets, scans, counts):
+    """Horizontal wall patches at height z (normal +z, D = −z), a 4 m square of points each."""
+    counts = np.asarray(counts, float)
+    means = np.array([[0.0, 0.0, z] for z in offsets])
+    scatters = counts[:, None, None] * np.diag([4.0 / 3, 4.0 / 3, 1e-4])
+    return (np.full(len(offsets), C.WALL), np.asarray(scans), np.tile([0.0, 0.0, 1.0], (len(offsets), 1)), means,
+            scatters, counts)
+
+
+def test_the_largest_clique_takes_a_shared_plane_first():
+    """Cliques {0, 1, 2} (z 0, 0, 0.2) and {2, 3} (z 0.2, 0.45) share plane 2: the larger takes it, and plane 3
+    alone spans one scan, so it joins no group."""
+    groups = cpv_mod.coplane_groups(*_flat_planes([0.0, 0.0, 0.2, 0.45], [0, 1, 2, 3], [100, 100, 100, 100]))
+    assert [sorted(g.members.tolist()) for g in groups] == [[0, 1, 2]]
+
+
+def test_between_cliques_of_one_size_the_one_with_more_points_takes_a_shared_plane():
+    """{0, 1} and {1, 2} share plane 1; plane 2 has five times the points, so {1, 2} is taken and 0 is left out."""
+    groups = cpv_mod.coplane_groups(*_flat_planes([0.0, 0.2, 0.4], [0, 1, 2], [100, 100, 500]))
+    assert [sorted(g.members.tolist()) for g in groups] == [[1, 2]]
+
+
+def test_cpv_of_several_groups_is_their_point_weighted_mean_and_each_group_keeps_its_normal(rng):
+    floor = [plane_points(rng, 3000, 2.0, 0.01) for _ in range(2)]
+    wall = [plane_points(rng, 200, o, 0.01, normal=(1.0, 0.0, 0.0)) for o in (5.0, 5.2)]
+    planes = [fit_plane(p, C.FLOOR) for p in floor] + [fit_plane(p, C.WALL) for p in wall]
+    arrays = planes_arrays(planes, [0, 1, 0, 1])
+    groups = cpv_mod.coplane_groups(*arrays)
+    assert sorted(sorted(g.members.tolist()) for g in groups) == [[0, 1], [2, 3]]
+    points = floor + wall
+    variances = []
+    for g in groups:  # λ_min: the variance of the group's points along its normal, which is the planes' normal
+        assert abs(g.normal @ arrays[2][g.members[0]]) == pytest.approx(1.0, abs=1e-4)
+        variances.append(np.var(np.concatenate([points[i] for i in g.members]) @ g.normal))
+        assert g.variance == pytest.approx(variances[-1], rel=1e-9)
+    points_per_group = [sum(len(points[i]) for i in g.members) for g in groups]
+    assert sorted(points_per_group) == [400, 6000] and variances[0] != pytest.approx(variances[1], rel=0.5)
+    assert cpv_mod.cpv(*arrays) == pytest.approx(np.dot(points_per_group, variances) / 6400, rel=1e-9)
 
 
 def brute_force_cliques(adj):

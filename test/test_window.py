@@ -50,6 +50,29 @@ def test_lookup_many_gives_each_stamp_what_lookup_gives_it():
     assert b.lookup_many(np.array([]), 0.05) is None and PoseBuffer(1.0).lookup_many(query, 0.05) is None
 
 
+def test_lookup_needs_both_neighbours_within_the_gap_and_a_gap_of_exactly_max_gap_is_fine():
+    b = _buffer([0.0, 0.1, 2.0], geometry.yaw_pose([0.0, 1.0, 2.0], 0.0, 0.0, 0.0))
+    assert b.lookup(0.15, 0.5) is None  # 0.05 s after one pose, but 1.85 s before the next
+    assert b.lookup(1.95, 0.5) is None  # the other way round
+    b = _buffer([0.0, 1.0], geometry.yaw_pose([0.0, 1.0], 0.0, 0.0, 0.0))
+    np.testing.assert_allclose(b.lookup(0.5, 0.5)[:3, 3], [0.5, 0.0, 0.0], atol=1e-12)
+
+
+def test_extrapolation_continues_the_last_steps_motion_at_constant_velocity():
+    """The last step moved 0.2 m and turned 0.1 rad in 0.1 s: half a step later the pose is 0.1 m and 0.05 rad
+    further on (in the pose's own frame), a whole step later (the extrapolation limit, included) 0.2 m and 0.1 rad."""
+    poses = geometry.yaw_pose([0.0, 0.2], [0.0, 0.0], 0.0, [0.0, 0.1])
+    b = _buffer([0.0, 0.1], poses)
+    for ahead in (0.5, 1.0):
+        expected = poses[1] @ geometry.make_pose(geometry.rotvec_to_matrix([0.0, 0.0, 0.1 * ahead]),
+                                                 [0.2 * ahead, 0.0, 0.0])
+        got = b.lookup(0.1 + 0.1 * ahead, 0.5, extrapolate_s=0.1)
+        assert got is not None
+        np.testing.assert_allclose(got, expected, atol=1e-9)
+    far = _buffer([0.0, 1.0], geometry.yaw_pose([0.0, 0.2], 0.0, 0.0, 0.0))
+    assert far.lookup(1.05, 0.5, extrapolate_s=0.1) is None  # its last two poses are 1 s apart: no motion to go on
+
+
 def test_duplicate_is_ignored_and_backwards_restarts():
     b = _buffer([0.0, 1.0], geometry.yaw_pose([0.0, 1.0], 0.0, 0.0, 0.0))
     assert b.add(1.0, np.eye(4)) == "duplicate"
@@ -93,6 +116,15 @@ def test_backwards_or_repeated_stamp_restarts_the_window():
     assert w.resets == 2 and len(w) == 1
 
 
+def test_a_restart_counts_a_discarded_window_only_when_one_was_partly_filled():
+    w = SlidingWindow(2)
+    assert w.push("a", 0.0) is None and w.push("b", 1.0) == ["a", "b"]
+    w.push("c", 0.5)  # backwards, nothing held: nothing thrown away
+    assert w.resets == 1 and w.discarded == 0
+    w.push("d", 0.2)  # backwards again, "c" held
+    assert w.resets == 2 and w.discarded == 1
+
+
 def test_bad_sizes_are_rejected():
     with pytest.raises(ValueError):
         SlidingWindow(-1)
@@ -133,6 +165,15 @@ def test_an_automatic_window_reads_the_rate_through_a_dropped_scan_jitter_and_a_
     w.push("d", 1.25)
     w.push("e", 1.5)
     assert w.size == 4 and w.push("f", 1.75) == ["c", "d", "e", "f"]
+
+
+def test_the_period_leaves_out_the_intervals_of_dropped_scans_before_taking_the_median():
+    """10 Hz with two scans dropped and one interval 5 ms long: intervals 0.1 0.2 0.105 0.2 0.1; the median of all
+    five would be 0.105 s (19 scans in 2 s), of those within 1.5 × the median 0.1 s (20 scans)."""
+    w = SlidingWindow(0, duration_s=2.0)
+    for s in (0.0, 0.1, 0.3, 0.405, 0.605, 0.705):
+        w.push(s, s)
+    assert w.scan_period_s == pytest.approx(0.1) and w.size == 20
 
 
 @pytest.mark.parametrize("jitter", [0.03, -0.03])
