@@ -152,3 +152,24 @@ def test_points_sharing_a_firing_time_move_as_if_each_were_computed_alone():
     np.testing.assert_allclose(deskew(pts, times, motion), plain, atol=2e-5)  # float32 points 50 m out
     shuffled = rng.permutation(len(pts))  # any order: the same result per point
     np.testing.assert_array_equal(deskew(pts[shuffled], times[shuffled], motion), deskew(pts, times, motion)[shuffled])
+
+
+def test_a_time_outside_the_sweeps_knots_takes_the_motion_of_the_end_knot():
+    """Times past the last knot take the last knot's motion, times before the first the first's (here the
+    stamp's: no motion), not the motion extrapolated."""
+    motion = sweep_motion(_moving, 100.0, 0.0, 0.1)
+    pts = np.random.default_rng(5).uniform(-10, 10, (50, 3)).astype(np.float32)
+    np.testing.assert_array_equal(deskew(pts, np.full(50, 0.3), motion), deskew(pts, np.full(50, 0.1), motion))
+    np.testing.assert_allclose(deskew(pts, np.full(50, -0.2), motion), pts, atol=1e-5)
+
+
+def test_the_sweep_to_deskew_follows_the_rate_and_the_mode():
+    """A per-point time field gives the sweep its own span; without one, the rate sets the period (20 Hz:
+    50 ms), and an unknown driver is deskewed only when told to ('on': clockwise, stamped at the first point)."""
+    from topometric_ros.deskew import sweep_to_deskew
+
+    assert sweep_to_deskew(np.array([0.01, 0.04, 0.07]), "", None, "auto") == (0.01, 0.07, 0.1, "first")
+    assert sweep_to_deskew(None, "velodyne", None, "auto", rate_hz=20.0) == (-0.05, 0.0, 0.05, "last")
+    assert sweep_to_deskew(None, "", None, "on") == (0.0, 0.1, 0.1, "first")
+    assert sweep_to_deskew(None, "", None, "auto") is None
+    assert sweep_to_deskew(np.array([0.01, 0.07]), "velodyne", None, "off") is None

@@ -76,3 +76,20 @@ def test_transform_points_keeps_dtype(rng):
     out = g.transform_points(t, p)
     assert out.dtype == np.float32
     np.testing.assert_allclose(out, (t[:3, :3] @ p.T).T + t[:3, 3], atol=1e-5)
+
+
+def test_interpolation_turns_the_short_way_round():
+    """From yaw +170° to yaw −170° is a 20° turn through 180°, not a 340° one through 0° (the quaternions of the
+    two have a negative dot product)."""
+    poses = g.yaw_pose(0.0, 0.0, 0.0, np.radians([170.0, -170.0]))
+    out, _ = g.interpolate_poses(np.array([0.0, 1.0]), poses, [0.25, 0.5])
+    assert g.rotation_angle(out[1, :3, :3]) == pytest.approx(np.pi, abs=1e-9)
+    assert g.rotation_angle(poses[0, :3, :3].T @ out[0, :3, :3]) == pytest.approx(np.radians(5.0), abs=1e-9)
+
+
+def test_a_query_outside_the_pose_stream_gets_the_nearest_end_pose_and_is_invalid(rng):
+    stamps = np.array([0.0, 1.0, 3.0])
+    poses = random_poses(rng, 3)
+    out, valid = g.interpolate_poses(stamps, poses, [-0.5, 3.5])
+    np.testing.assert_allclose(out, poses[[0, 2]], atol=1e-12)
+    assert valid.tolist() == [False, False]

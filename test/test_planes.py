@@ -458,3 +458,58 @@ def test_groups_list_each_plane_points_in_order_and_skip_unused_ids():
     groups = _groups(np.array([2, -1, 0, 2, 0, -1, 5, 2]))
     assert {g: m.tolist() for g, m in groups.items()} == {0: [2, 4], 2: [0, 3, 7], 5: [6]}
     assert _groups(np.full(4, -1)) == {}
+
+
+def test_parts_are_coplanar_only_when_their_normals_agree_and_each_centroid_lies_on_the_others_plane():
+    """planes._coplanar on parts of the plane z = −1 (normal +z, toward the sensor) and three others: one
+    through its centroid turned 20° (normals too far apart at 10°), one turned 5° (coplanar), and one turned
+    5° through a centroid 5 m away on z = −1 (that centroid is on the first plane, but the first centroid is
+    0.44 m off the other's plane: both must hold); a part of another class is never coplanar."""
+    from topometric_ros.planes import _coplanar
+
+    def turned(deg, axis):
+        s, c = np.sin(np.radians(deg)), np.cos(np.radians(deg))
+        return [0.0, s, c] if axis == "x" else [s, 0.0, c]
+
+    normal = np.array([[0.0, 0.0, 1.0], turned(20, "x"), turned(5, "x"), turned(5, "y"), [0.0, 0.0, 1.0]])
+    mean = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [5.0, 0.0, -1.0], [1.0, 1.0, -1.0]])
+    offset = -np.einsum("ij,ij->i", normal, mean)
+    cls = np.array([C.WALL, C.WALL, C.WALL, C.WALL, C.FLOOR])
+    i, j = np.zeros(4, np.int64), np.arange(1, 5)
+    assert _coplanar(cls, normal, offset, mean, i, j, 10.0, 0.06).tolist() == [False, True, False, False]
+    assert _coplanar(cls, normal, offset, mean, j, i, 10.0, 0.06).tolist() == [False, True, False, False]
+
+
+@pytest.mark.parametrize("cls, normal, offset", [(C.FLOOR, [0.0, 0.0, 1.0], 1.2), (C.CEILING, [0.0, 0.0, -1.0], 2.5)])
+def test_coplanar_pieces_of_a_floor_or_ceiling_are_one_plane_whatever_the_gap(cls, normal, offset):
+    """config planes.merge_floor_ceiling: two strips of one floor (or ceiling) 4 m apart, far beyond merge_gap,
+    are one plane; without the option, two."""
+    pts, _, ring = _plane_scan(normal, offset, max_range=15.0)
+    apart = np.abs(pts[:, 1]) > 2.0
+    pts, ring, labels = pts[apart], ring[apart], np.full(np.count_nonzero(apart), cls, np.uint8)
+    assert len(detect_planes(pts, labels, ring)) == 1
+    assert len(detect_planes(pts, labels, ring, replace(PlaneConfig(), merge_floor_ceiling=False))) == 2
+
+
+def test_a_tile_whose_points_lie_along_a_line_is_no_plane_seed():
+    """planes._quadtree_tiles: of two tiles as thin (4 mm RMS off their best plane) as a planar tile must be,
+    the one whose points lie along a line (a pole, one scan line's run) has no in-plane spread across it and
+    seeds no plane (config planes.tile_min_flatness); the patch does."""
+    from topometric_ros.planes import _quadtree_tiles
+
+    rng = np.random.default_rng(1)
+    n = 200
+    line = np.column_stack([np.linspace(2.0, 3.0, n), rng.normal(0, 0.004, n), rng.normal(0, 0.004, n)])
+    patch = np.column_stack([2.0 + rng.normal(0, 0.004, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)])
+    p = np.concatenate([line, patch]).astype(np.float32)
+    zeros = np.zeros(2 * n, np.int64)
+    tiles = _quadtree_tiles(p, zeros, zeros, np.repeat([0, 1], n), 2, replace(PlaneConfig(), tile_levels=1))
+    count, grid = tiles[0], tiles[-1]
+    assert count.tolist() == [n] and grid[0, 0].tolist() == [-1, 0]
+
+
+def test_a_plane_with_fewer_inliers_than_min_points_is_dropped():
+    pts, labels, ring = _plane_scan([-1.0, 0.2, 0.0], 3.0, max_range=6.0)
+    (plane,) = detect_planes(pts, labels, ring)
+    assert len(detect_planes(pts, labels, ring, replace(PlaneConfig(), min_points=plane.count))) == 1
+    assert detect_planes(pts, labels, ring, replace(PlaneConfig(), min_points=plane.count + 1)) == []

@@ -213,3 +213,46 @@ def test_an_azimuth_goes_to_the_cell_centred_nearest_to_it(dtype):
     np.testing.assert_array_equal(azimuth_cells((centres + off).astype(dtype), width), cells)
     np.testing.assert_array_equal(azimuth_cells((centres - off).astype(dtype), width), cells)
     assert azimuth_cells(np.array([-1e-9, np.pi - 1e-6], dtype), width).tolist() == [0, width // 2]
+
+
+def test_a_non_repetitive_scans_elevation_bins_split_its_field_of_view_evenly():
+    """Non-repetitive rows are NON_REPETITIVE_ROWS equal elevation bins from the lowest elevation to the highest:
+    elevations spread evenly put as many points in every row, rows rising with elevation."""
+    from topometric_ros.grid import NON_REPETITIVE_ROWS
+
+    el = np.linspace(-7, 52, NON_REPETITIVE_ROWS * 50 + 1)
+    grid = scan_grid(_beams(el, per_beam=3), layout="livox")
+    counts = np.bincount(grid.row, minlength=grid.height)
+    assert grid.height == NON_REPETITIVE_ROWS and counts.min() >= 3 * 49 and counts.max() <= 3 * 52, counts
+    assert np.all(np.diff(grid.row.reshape(len(el), 3)[:, 0]) >= 0)
+
+
+def test_an_unorganised_scans_width_comes_from_its_fullest_rows_not_its_sparsest():
+    """No sensor named, no organised width: the firings per revolution are estimated from the azimuth steps of
+    the fullest rows; three beams that returned only a few points (sky, a window) do not shrink the grid."""
+    full = _beams(np.linspace(-15, 15, 16), per_beam=1800)
+    beam = np.repeat(np.arange(16), 1800)
+    keep = (beam < 13) | (np.arange(len(beam)) % 45 == 0)  # beams 13-15: 40 returns each, 16° apart
+    assert scan_grid(full[keep], beam[keep]).width == 1800
+
+
+def test_near_points_blurred_by_beam_origin_offsets_do_not_hide_the_beams():
+    """Points nearer than grid.CLUSTER_MIN_RANGE do not place beams: a beam origin 5 cm above the sensor's
+    shifts the elevation of its near returns by up to ~10° (the more, the nearer), filling the gaps between
+    the beams; the far points' clusters are the beams, and the near blur adds none."""
+    el = np.linspace(-15, 15, 16)
+    rng = np.random.default_rng(0)
+    e, a, r = np.radians(rng.choice(el, 600)), rng.uniform(0, 2 * np.pi, 600), rng.uniform(0.3, 1.9, 600)
+    near = r[:, None] * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], 1) + [0.0, 0.0, 0.05]
+    grid = scan_grid(np.concatenate([_beams(el, per_beam=1800), near.astype(np.float32)]))
+    assert grid.source == "elevation clusters" and grid.height == 16
+    np.testing.assert_allclose(grid.elevation_deg, el, atol=0.01)
+
+
+def test_elevations_in_runs_wider_than_a_beam_are_no_beams():
+    """No sensor named, no driver layout: elevations filling 10 bands 2° wide make enough clusters for beams,
+    but each is wider than one beam can be (grid.MAX_BEAM_WIDTH_DEG): a non-repetitive pattern, binned."""
+    from topometric_ros.grid import beam_centres
+
+    pts = _beams(np.concatenate([lo + np.linspace(0.0, 2.0, 200) for lo in np.arange(10) * 3.0 - 15]), per_beam=10)
+    assert beam_centres(pts) is None and scan_grid(pts).source == "elevation bins (non-repetitive)"
