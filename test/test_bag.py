@@ -222,3 +222,56 @@ def test_a_process_with_locked_memory_reads_a_bag_whole(tmp_path, rng):
     if out.returncode == 3:
         pytest.skip("mlockall refused here (RLIMIT_MEMLOCK)")
     assert out.returncode == 0 and out.stdout.strip() == "5", out.stderr[-2000:]
+
+
+def test_odometry_pose_reads_the_quaternion_as_x_y_z_w_and_normalises_it():
+    """A nav_msgs/Odometry written field by field (not by make_odometry): orientation (x, y, z, w) =
+    (0, 0, 2 sin 45°, 2 cos 45°), a quarter turn about z at twice unit length, position (1, 2, 3), stamp
+    12 s + 500 ms: the pose is that turn and translation, the stamp 12.5 s."""
+    m = bag.msg_types()
+    odom = bag.make_odometry(0.0, np.eye(4))
+    odom.header.stamp.sec, odom.header.stamp.nanosec = 12, 500_000_000
+    s = 2 * np.sin(np.pi / 4)
+    odom.pose.pose.orientation = m.Quaternion(x=0.0, y=0.0, z=s, w=s)
+    odom.pose.pose.position = m.Point(x=1.0, y=2.0, z=3.0)
+    stamp, pose = bag.odometry_pose(odom)
+    assert stamp == pytest.approx(12.5)
+    np.testing.assert_allclose(pose, [[0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], atol=1e-12)
+
+
+def test_the_topics_of_several_bags_read_as_one_add_up_their_message_counts(tmp_path):
+    with bag.BagWriter(tmp_path / "a") as w:
+        for k in range(3):
+            w.write("/odom", 1.0 + k, bag.make_odometry(1.0 + k, np.eye(4)))
+    with bag.BagWriter(tmp_path / "b") as w:
+        for k in range(2):
+            w.write("/odom", 10.0 + k, bag.make_odometry(10.0 + k, np.eye(4)))
+        w.write("/odom2", 10.0, bag.make_odometry(10.0, np.eye(4)))
+    assert bag.topics([tmp_path / "a", tmp_path / "b"]) == {"/odom": (bag.ODOMETRY, 5), "/odom2": (bag.ODOMETRY, 1)}
+
+
+def test_a_message_that_does_not_deserialise_is_counted_and_skipped_in_an_mcap_bag(tmp_path):
+    """An uncompressed MCAP bag (read by storage.py, not rosbags) holding 4 odometry messages, the third cut
+    short: 3 come back, and the read log counts 4 messages read, 1 undecodable."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from topometric_ros.storage import ReadLog
+
+    store = bag.typestore()
+    with Writer(tmp_path / "cut", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        odom = writer.add_connection("/odom", bag.ODOMETRY, typestore=store)
+        for k in range(4):
+            raw = store.serialize_cdr(bag.make_odometry(1.0 + k, np.eye(4)), bag.ODOMETRY)
+            writer.write(odom, int((1.0 + k) * 1e9), bytes(raw[:20]) if k == 2 else raw)
+    log = ReadLog()
+    got = list(bag.read_messages(tmp_path / "cut", ["/odom"], log))
+    assert [t for _, t, _ in got] == [1_000_000_000, 2_000_000_000, 4_000_000_000]
+    assert log.undecodable == 1 and log.messages == 4
+    assert "1 messages undecodable" in log.summary()
+
+
+def test_the_stamp_of_a_tf_message_is_its_earliest_transform_stamp():
+    tf = bag.make_tf(2.0, np.eye(4), "odom", "base_link")
+    tf.transforms.append(bag.make_tf(1.5, np.eye(4), "base_link", "lidar").transforms[0])
+    assert bag.message_stamp_ns(("/tf", 7, tf)) == 1_500_000_000
+    assert bag.message_stamp_ns(("/x", 7, object())) == 7  # neither header nor transforms: the receive time

@@ -149,3 +149,47 @@ def test_the_shipped_parameter_file_holds_every_config_leaf_at_its_default():
     doc = yaml.safe_load((ROOT / "config" / "topometric.yaml").read_text())["/**"]["ros__parameters"]
     assert set(config.flatten(config.Config())) <= set(doc)
     assert config.load_config(ROOT / "config" / "topometric.yaml") == config.Config()
+
+
+def test_both_ends_of_every_range_are_accepted_and_just_beyond_them_refused():
+    """RANGES bounds are both included: each leaf takes its min and its max (an int leaf as an int), and refuses
+    a value just outside either end."""
+    defaults = config.flatten(config.Config())
+    for key, (lo, hi) in config.RANGES.items():
+        kind = type(defaults[key])
+        for value in (lo, hi):
+            if key in config.REFUSED and value in config.REFUSED[key]:
+                continue
+            cfg = config.load_config(overrides={key: kind(value)})
+            assert config.flatten(cfg)[key] == value, key
+        step = 1 if kind is int else max(1e-9, 1e-6 * (hi - lo))
+        for value in (lo - step, hi + step):
+            with pytest.raises(ValueError, match="out of range"):
+                config.load_config(overrides={key: kind(value)})
+
+
+@pytest.mark.parametrize("value", [True, False, 10.0, 2.5, "10"])
+def test_a_whole_number_setting_refuses_booleans_floats_and_strings(value):
+    """window.size is an int: True (which Python counts as 1), a float, even a whole one, and a string are
+    refused as the wrong type, not taken or rounded."""
+    with pytest.raises(ValueError, match=r"'window\.size' must be int"):
+        config.load_config(overrides={"window.size": value})
+
+
+def test_a_string_setting_of_few_choices_refuses_any_other_value_in_a_config():
+    with pytest.raises(ValueError, match=r"'segmentation\.mode' must be one of network, labels, none"):
+        config.load_config(overrides={"segmentation.mode": "magic"})
+    with pytest.raises(ValueError, match=r"'planes\.detector' must be one of"):
+        config.load_config(overrides={"planes": {"detector": "Ring"}})
+    assert config.load_config(overrides={"segmentation.mode": "labels"}).segmentation.mode == "labels"
+
+
+def test_an_extrinsic_of_any_unit_quaternion_is_taken():
+    """A half turn about x (qx = 1, the rest 0) is a valid rotation: only a quaternion of zero norm is refused."""
+    for q in ([1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]):
+        assert config.load_config(overrides={"window.extrinsic": [0, 0, 0, *q]}).window.extrinsic[3:] == q
+
+
+def test_a_section_given_a_single_value_is_refused_naming_it():
+    with pytest.raises(ValueError, match=r"config key 'window' is a section; give a mapping"):
+        config.load_config(overrides={"window": 5})

@@ -236,3 +236,74 @@ def test_the_segmenter_snaps_non_repetitive_scans_only():
     assert np.all(b[a == C.FLOOR] == C.FLOOR) and np.count_nonzero(b == C.FLOOR) > np.count_nonzero(a == C.FLOOR)
     with pytest.raises(SegmentationError, match="segmentation.floor_snap"):
         Segmenter.from_config(replace(SegmentationConfig(), floor_snap=-0.01))
+
+
+def _flat_floor(n_cols: int = 40, rows: int = 10, z: float = -1.0):
+    """A flat floor z = ``z`` m as a rows x n_cols grid (x 2 m + 0.1 m per row, y 5 cm per column), all floor."""
+    r, c = np.meshgrid(np.arange(rows), np.arange(n_cols), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    points = np.stack([2 + 0.1 * r, 0.05 * (c - n_cols / 2), np.full(r.size, z)], 1).astype(np.float32)
+    grid = ScanGrid(r.astype(np.int32), c.astype(np.int32), rows, n_cols, np.zeros(rows), "test")
+    return points, grid, np.full(r.size, C.FLOOR, np.uint8), np.full(r.size, 0.9, np.float32)
+
+
+def test_exactly_min_floor_points_floor_points_give_a_plane():
+    points, _, labels, _ = _flat_floor()
+    labels[F.MIN_FLOOR_POINTS:] = C.WALL
+    normal, offset = F.floor_plane(points, labels)
+    assert np.allclose(np.abs(normal), [0, 0, 1], atol=1e-6) and offset == pytest.approx(-1.0, abs=1e-6)
+    labels[F.MIN_FLOOR_POINTS - 1] = C.WALL
+    assert F.floor_plane(points, labels) is None
+
+
+def test_the_floor_plane_of_many_floor_points_is_fitted_to_an_even_sample_of_all_of_them():
+    """2 x 1200 floor points, the first 1200 (in scan order) at z = -1.00 m, the next 1200 on the same x-y
+    places at -1.02 m (a floor 2 cm lower further on): every point is within the fit's tolerance of the plane
+    between them, so the plane lies halfway, -1.01 m; a fit to the first FIT_POINTS alone would say -1.00."""
+    points, _, labels, _ = _flat_floor(n_cols=120)
+    lower = points.copy()
+    lower[:, 2] = -1.02
+    points, labels = np.concatenate([points, lower]), np.concatenate([labels, labels])
+    assert len(points) > 2 * F.FIT_POINTS
+    normal, offset = F.floor_plane(points, labels)
+    assert np.allclose(normal, [0, 0, 1], atol=1e-4) and offset == pytest.approx(-1.01, abs=1e-3)
+
+
+def test_the_floor_fit_keeps_every_point_within_its_tolerance_of_the_plane():
+    """A floor of 600 points (z = -1 m within 2 mm) of which 90 (15 %) stand 2 cm higher (a rug): all within
+    FIT_TOLERANCE of the plane, so all count, and the plane is their least-squares plane, 3 mm up
+    (0.15 x 2 cm); trimming the highest 20 % regardless would drop the rug (-1.000)."""
+    points, _, labels, _ = _flat_floor(n_cols=60)
+    rng = np.random.default_rng(0)
+    points[:, 2] += rng.uniform(-0.002, 0.002, len(points)).astype(np.float32)
+    rug = np.arange(len(points)) % 20 < 3  # 3 of every 20 points, spread over the floor
+    points[rug, 2] += 0.02
+    normal, offset = F.floor_plane(points, labels)
+    p = points.astype(np.float64)
+    ls_normal = np.linalg.svd(p - p.mean(0))[2][2]  # the least-squares plane of every point
+    ls_normal *= np.sign(ls_normal[2])
+    assert np.allclose(normal, ls_normal, atol=1e-5) and offset == pytest.approx(ls_normal @ p.mean(0), abs=1e-5)
+    assert offset == pytest.approx(-0.997, abs=1e-3)
+
+
+def test_the_snap_takes_points_within_the_band_either_side_of_the_plane_and_nothing_far_below_it():
+    """snap_to_floor with band 2 cm on a flat floor at z = -1 m: a wall point 1 cm below the plane and one 1 cm
+    above become floor; an 'other' point 10 cm below (a pit, a reflection) and a chair point 10 cm above stay."""
+    points, _, labels, conf = _flat_floor()
+    near_below, near_above, far_below, far_above = 5, 6, 7, 8
+    points[[near_below, near_above, far_below, far_above], 2] = [-1.01, -0.99, -1.10, -0.90]
+    labels[[near_below, near_above, far_below, far_above]] = [C.WALL, C.WALL, C.OTHER, C.CHAIR]
+    out, _ = F.snap_to_floor(points, labels, conf, 0.02)
+    assert out[near_below] == out[near_above] == C.FLOOR
+    assert out[far_below] == C.OTHER and out[far_above] == C.CHAIR
+
+
+def test_a_foot_up_to_reach_is_lifted_and_one_higher_is_another_level():
+    """REACH is 0.3 m (config segmentation.floor_band's documented limit): the chair's foot labelled floor 25 cm
+    above the floor takes the chair's label; 35 cm above it is left floor (another level, a step)."""
+    assert F.REACH == 0.3
+    points, grid, labels, conf, foot = _room()
+    points[foot, 2] = -1.0 + 0.25
+    assert np.all(F.lift_off_floor(points, grid, labels, conf, BAND)[0][foot] == C.CHAIR)
+    points[foot, 2] = -1.0 + 0.35
+    assert np.array_equal(F.lift_off_floor(points, grid, labels, conf, BAND)[0], labels)

@@ -134,3 +134,35 @@ def test_the_vote_matches_its_rule_written_plainly_on_random_scans(seed):
         assert np.array_equal(got[0], want[0])
         assert np.allclose(got[1], want[1], atol=1e-6)
     assert (knn_vote(points, grid, labels, conf, 5, 2.0)[0] != labels).any()  # the vote had work to do
+
+
+@pytest.mark.parametrize("side", [-2, 2])
+def test_a_point_whose_only_other_class_neighbours_are_in_the_window_edge_column_is_still_voted_on(side):
+    """A chair point at (row 1, col 20) of a 3 x 40 grid with the cells of columns 18-22 empty but for three wall
+    points in column 20 + ``side`` (the 3 x 5 window's outer column), 5-7 cm away: the two nearest walls outvote
+    it (2 against its own 1.5). The shortcut that skips windows of one class must see that column too."""
+    points = np.array([[5.0, 0.0, 0.0], [5.0, 0.05 * side / 2, -0.04], [5.0, 0.05 * side / 2, 0.0],
+                       [5.0, 0.05 * side / 2, 0.04]], np.float32)
+    row = np.array([1, 0, 1, 2], np.int32)
+    col = np.array([20, 20 + side, 20 + side, 20 + side], np.int32)
+    grid = ScanGrid(row, col, 3, 40, np.zeros(3), "test")
+    labels = np.array([C.CHAIR, C.WALL, C.WALL, C.WALL], np.uint8)
+    conf = np.array([0.6, 0.7, 0.8, 0.9], np.float32)
+    out, out_conf = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[0] == C.WALL
+    assert np.array_equal(out[1:], labels[1:])
+
+
+def test_equidistant_neighbours_vote_in_window_order():
+    """Ties in distance go to the neighbour met first in the window (rows upward, then columns; the plain rule's
+    stable sort): a chair point with three neighbours exactly 0.25 m away in the row below it (wall, wall, chair,
+    met in that order) and k = 3 keeps itself and the two walls, which outvote it (2 against 1.5)."""
+    points = np.array([[5.0, 0.0, 0.0], [5.0, 0.0, -0.25], [5.0, 0.25, 0.0], [5.0, -0.25, 0.0]], np.float32)
+    row = np.array([1, 0, 0, 0], np.int32)
+    col = np.array([20, 19, 20, 21], np.int32)
+    grid = ScanGrid(row, col, 2, 40, np.zeros(2), "test")
+    labels = np.array([C.CHAIR, C.WALL, C.WALL, C.CHAIR], np.uint8)
+    conf = np.array([0.6, 0.7, 0.8, 0.9], np.float32)
+    want = _reference_vote(points, grid, labels, conf, 3, 0.5, (3, 5))
+    out, out_conf = knn_vote(points, grid, labels, conf, k=3, distance=0.5)
+    assert out[0] == want[0][0] == C.WALL and out_conf[0] == pytest.approx(0.75)

@@ -158,3 +158,14 @@ def test_the_objects_match_the_rule_written_plainly_on_random_scans():
 def test_a_negative_gap_is_refused():
     with pytest.raises(SegmentationError, match="segmentation.object_gap"):
         Segmenter.from_config(replace(SegmentationConfig(), object_gap=-0.1))
+
+
+def test_points_exactly_gap_apart_do_not_join_and_just_nearer_ones_do():
+    """One row: a chair point and three desk points 0.25 m apart (exact in binary, so the distance is exactly the
+    gap). 'Less than gap' joins nothing at gap 0.25; at 0.2501 they are one object, 3 desk of 4: all desk."""
+    points = np.array([[3.0, 0.25 * k, 0.0] for k in range(4)], np.float32)
+    grid = ScanGrid(np.zeros(4, np.int32), np.arange(4, dtype=np.int32), 1, 40, np.zeros(1), "test")
+    labels = np.array([C.CHAIR, C.DESK, C.DESK, C.DESK], np.uint8)
+    conf = np.full(4, 0.8, np.float32)
+    assert np.array_equal(O.unify_objects(points, grid, labels, conf, 0.25)[0], labels)
+    assert np.all(O.unify_objects(points, grid, labels, conf, 0.2501)[0] == C.DESK)

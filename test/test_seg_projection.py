@@ -35,7 +35,9 @@ def test_rows_from_elevation_match_the_ring_field(scan):
     np.testing.assert_array_equal(with_ring.flat, without.flat)
 
 
-@pytest.mark.parametrize("beams, images, rows", [(16, 1, 16), (32, 1, 32), (40, 2, 20), (64, 2, 32), (128, 4, 32)])
+# 33 beams: image 0 holds beams 0, 2, ..., 32 (17 rows), padded to 20
+@pytest.mark.parametrize("beams, images, rows", [(16, 1, 16), (32, 1, 32), (40, 2, 20), (64, 2, 32), (128, 4, 32),
+                                                 (33, 2, 20)])
 def test_many_beams_are_split_into_interleaved_images_of_at_most_32_rows(beams, images, rows):
     """Beam b of B goes to image b % k, row b // k: every image spans the whole field of view."""
     el = np.radians(np.linspace(-20, 20, beams))
@@ -146,3 +148,16 @@ def test_iou_and_miou_analytic():
     assert iou[C.FLOOR] == pytest.approx(2 / 3) and iou[C.WALL] == pytest.approx(2 / 3) and iou[C.PILLAR] == 1.0
     assert np.isnan(iou[C.DESK])  # absent from truth and prediction: not counted
     assert miou(conf) == pytest.approx((2 / 3 + 2 / 3 + 1) / 3)
+
+
+def test_a_row_just_below_a_strided_top_row_can_take_the_top_row():
+    """max_beams on a 5-row grid, stride 2: rows 0, 2 and 4 (the top row) are segmented; a point of row 3 takes
+    whichever of rows 2 and 4 is nearer it in range (row 4 here), and a point of row 1 likewise (row 0 here)."""
+    row = np.array([0, 2, 4, 3, 1])
+    rng = np.array([5.0, 9.0, 7.0, 7.2, 5.3])
+    points = np.stack([rng, np.zeros(5), np.zeros(5)], 1).astype(np.float32)
+    grid = ScanGrid(row.astype(np.int32), np.zeros(5, np.int32), 5, 8, np.linspace(-4.0, 4.0, 5), "test")
+    keep, sub = strided(grid, 2)
+    np.testing.assert_array_equal(keep, [0, 1, 2])
+    assert sub.height == 3 and list(sub.row) == [0, 1, 2] and list(sub.elevation_deg) == [-4.0, 0.0, 4.0]
+    np.testing.assert_array_equal(nearest_strided(points, grid, keep, 2), [0, 1, 2, 2, 0])
