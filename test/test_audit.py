@@ -379,3 +379,48 @@ def test_the_cache_key_holds_the_code_and_a_failed_bag_keeps_no_earlier_reports(
     row = audit_mod._store(tmp_path / "out", tasks[0], None, "worker died")
     assert row["status"] == "failed" and not (folder / "windows.json").exists()
     assert json.loads((folder / MANIFEST).read_text())["key"] is None
+
+
+def _record(i: int, level: str, rot: float, warn_at: float = 1.0) -> dict:
+    """A window record of windows.json as fleet_row reads it: 1 s windows from 100 s on."""
+    return {"index": i, "start": 100.0 + i, "end": 101.0 + i, "level": level, "message": f"window {i} {level}",
+            "rot_rate": rot, "trans_rate": 0.01, "rot_rate_warn_at": warn_at, "trans_rate_warn_at": 1.0}
+
+
+def test_a_fleet_row_counts_each_level_and_names_the_worst_window():
+    """Known windows: OK, WARN 5x its limit, ERROR 2x, OK, WARN, WARN: each level counted in its own column, two
+    alarm episodes, the worst window the ERROR one (a higher level beats a larger excess) at its end since the first
+    window's start; rate quantiles over the finite rates only (a window with no rate is no NaN quantile)."""
+    from topometric_ros.audit import BagTask, fleet_row
+
+    levels = ["OK", "WARN", "ERROR", "OK", "WARN", "WARN"]
+    rots = [0.1, 5.0, 2.0, float("nan"), 1.5, 1.2]
+    records = [_record(i, lv, r) for i, (lv, r) in enumerate(zip(levels, rots))]
+    task = BagTask("/bags/b", "b", load_config(), {})
+    row = fleet_row(task, records, {"bag_s": 6.0, "scans_processed": 30, "notes": []})
+    assert (row["status"], row["windows"], row["ok"], row["warn"], row["error"]) == ("ok", 6, 2, 3, 1)
+    assert row["episodes_alarmed"] == 2
+    assert (row["worst_level"], row["worst_reason"], row["worst_time_s"]) == ("ERROR", "window 2 ERROR", 3.0)
+    assert row["rot_rate_p50"] == pytest.approx(1.5) and row["rot_rate_p99"] == pytest.approx(4.88)
+    # among windows of one level, the one furthest above its drift-rate WARN limit
+    warns = [_record(0, "WARN", 3.0, warn_at=2.0), _record(1, "WARN", 2.0, warn_at=0.5), _record(2, "OK", 9.0)]
+    assert fleet_row(task, warns, {"notes": []})["worst_reason"] == "window 1 WARN"
+
+
+def test_the_cache_key_changes_with_the_replay_options_and_the_network_weights(office_bag, tmp_path):
+    """Another topic for the replay, or other bytes of the network's weights, is another key: an audit never
+    reuses a bag's results of other topics or another network."""
+    from topometric_ros.audit import plan
+
+    bag_path, _ = office_bag
+    labels = load_config(overrides={"segmentation.mode": "labels"})
+    key = plan([bag_path], tmp_path, labels)[0][0].key
+    assert key == plan([bag_path], tmp_path, labels, {})[0][0].key
+    assert key != plan([bag_path], tmp_path, labels, {"points_topic": "/front/points"})[0][0].key
+    weights = tmp_path / "mine.pt"
+    keys = []
+    for data in (b"one network", b"another network"):
+        weights.write_bytes(data)
+        network = load_config(overrides={"segmentation.mode": "network", "segmentation.weights": str(weights)})
+        keys.append(plan([bag_path], tmp_path, network)[0][0].key)
+    assert keys[0]["config"] == keys[1]["config"] and keys[0] != keys[1]

@@ -319,3 +319,31 @@ def test_what_is_no_bag_at_all_is_a_bag_error(tmp_path):
             bag.topics(path)
         with pytest.raises(bag.BagError, match=why):
             list(bag.read_messages(path))
+
+
+def test_the_topic_counts_of_a_bag_of_two_files_add_up(bags, tmp_path):
+    """A bag folder of two storage files (a split recording): every topic's count over both files, not the last
+    file's."""
+    from topometric_ros import storage
+
+    (one,) = bags["mcap"].glob("*.mcap")
+    split = tmp_path / "split"
+    split.mkdir()
+    shutil.copy(one, split / "split_0.mcap")
+    shutil.copy(one, split / "split_1.mcap")
+    single = storage.topic_table(one)
+    assert single["/points"][1] == FRAMES
+    assert storage.topic_table(split) == {t: (kind, 2 * n) for t, (kind, n) in single.items()}
+
+
+def test_a_read_log_describes_at_most_max_notes_damages_and_counts_the_rest():
+    """Twelve damages: the first MAX_NOTES described, the other four counted in one line, then the summary."""
+    from topometric_ros import storage
+
+    log = storage.ReadLog()
+    for i in range(12):
+        log.damage(f"damage {i}")
+    log.message()
+    assert log.notes == [f"damage {i}" for i in range(storage.MAX_NOTES)] and log.more_notes == 12 - storage.MAX_NOTES
+    assert log.lines() == log.notes + ["4 more damages not described",
+                                       "damaged bag: 1 messages read, 1 of them past damage"]

@@ -441,6 +441,8 @@ def test_replay_that_processes_no_scan_fails_and_says_why(office_bag, tmp_path, 
         assert f"NO SCAN PROCESSED: {reason}" in out and hint in out and summary["no_scans"].startswith(reason), (name, out)
         assert "  /points  sensor_msgs/msg/PointCloud2  " in out, (name, out)
         assert f"segmentation   {args[1]} (" in out and "sensor         read off each cloud" in out, (name, out)
+        # said once, as the reason: no note of a window or of scans without odometry besides it
+        assert not any(n.startswith("no window") or "with no odometry at" in n for n in summary["notes"]), (name, out)
     assert "  /odom  nav_msgs/msg/Odometry  " in out  # the bag's topics with their types and counts
 
 
@@ -604,13 +606,14 @@ def test_an_odometry_gap_is_reported_stale_in_bag_time(office_bag, tmp_path):
 
     bag_path, _ = office_bag
     gap = tmp_path / "gap"
-    t_first = None
+    t_first, odom_times = None, []
     with bag.BagWriter(gap) as w:
         for topic, t_ns, msg in bag.read_messages(bag_path):
             t = t_ns * 1e-9
             t_first = t if topic == "/points" and t_first is None else t_first
             if topic == "/odom" and t_first is not None and 1.0 < t - t_first < 4.0:
                 continue
+            odom_times += [t] * (topic == "/odom")
             w.write(topic, t, msg)
     config = cfg(**{"health.stale_after_s": 1.5})
     res = replay(gap, tmp_path / "out", config, ReplayOptions(progress=False, plot=False), floor_scan, floor_window)
@@ -622,6 +625,9 @@ def test_an_odometry_gap_is_reported_stale_in_bag_time(office_bag, tmp_path):
     assert "no odometry for" in status.message
     assert 1.0 + 1.5 < log_time * 1e-9 - t_first < 4.0 + 0.5  # in the gap, in bag time
     assert res.summary["counters"]["dropped_no_pose"] >= 10  # 2.6 s of 5 Hz scans had no odometry
+    # the odometry's interval is its usual step (the median), not pulled up by the gap
+    assert res.summary["odometry_interval_s"] == pytest.approx(np.median(np.diff(odom_times)), abs=1e-6)
+    assert res.summary["odometry_interval_s"] < np.mean(np.diff(odom_times)) - 0.01
 
 
 def test_a_damaged_bag_whose_clouds_cannot_be_read_says_so_not_that_it_has_none(office_bag, tmp_path, capsys):
@@ -865,3 +871,110 @@ def test_a_replay_into_a_folder_of_older_reports_leaves_none_of_them(office_bag,
     assert s["windows"] == 6 and not (out / "metrics.png").exists()
     assert json.loads((out / "windows.json").read_text())["summary"]["windows"] == 6
     assert (out / "mine.txt").read_text() == "the user's"
+
+
+def test_odometry_that_starts_after_the_clouds_is_said_and_goes_stale_only_after_stale_after_s(office_bag, tmp_path):
+    """/odom only from 3 s after the first cloud: a note says when it starts and that the scans before it are
+    not judged; the STALE status for the missing odometry comes stale_after_s into the bag, not at its start."""
+    bag_path, _ = office_bag
+    late = _rewritten(bag_path, tmp_path / "late", lambda topic, t, msg, first: [] if topic == "/odom" and (
+        first is None or t - first < 3.0) else [(topic, t, msg)])
+    s = _notes(late, tmp_path / "out", **{"health.stale_after_s": 1.0})
+    start = [n for n in s["notes"] if n.startswith("the odometry starts ")]
+    assert len(start) == 1 and start[0].endswith(" s after the clouds: the scans before it are not judged"), s["notes"]
+    assert 2.9 <= float(start[0].split()[3]) <= 3.1, start
+    # no odometry for stale_after_s once the bag has run that long: STALE then, not at the bag's first message
+    assert "STALE 1 time in diagnostics.mcap, first at 1.0 s: no odometry yet" in s["notes"], s["notes"]
+
+
+def test_a_bag_whose_every_cloud_or_every_odometry_message_is_bad_says_so(office_bag, tmp_path):
+    """Every cloud malformed (fields beyond point_step), or every odometry message a zero quaternion: the reason
+    no scan was processed says so with the count and the last error, not a generic "no scan was processed"."""
+    bag_path, _ = office_bag
+
+    def malformed(topic, msg):
+        if topic == "/points":
+            msg = copy.copy(msg)
+            msg.point_step = 7
+        return [(topic, msg)]
+
+    def zero_quaternion(topic, msg):
+        if topic == "/odom":
+            msg = copy.deepcopy(msg)
+            q = msg.pose.pose.orientation
+            q.x = q.y = q.z = q.w = 0.0
+        return [(topic, msg)]
+
+    clouds = run(rewrite(bag_path, tmp_path / "clouds", malformed), tmp_path / "o1", plot=False).summary
+    assert clouds["scans_processed"] == 0 and clouds["scans_read"] == 6
+    assert clouds["no_scans"].startswith("every cloud of /points (6) was malformed or empty; last: malformed cloud"), \
+        clouds["no_scans"]
+    poses = run(rewrite(bag_path, tmp_path / "poses", zero_quaternion), tmp_path / "o2", plot=False).summary
+    assert poses["scans_processed"] == 0 and poses["counters"]["bad_poses"] == poses["counters"]["poses_in"] > 0
+    assert poses["no_scans"].startswith("every odometry message of /odom was invalid; last: "), poses["no_scans"]
+
+
+def test_scans_enough_for_a_window_that_gave_none_say_it_was_lost_not_too_few():
+    """A window's worth of scans (5 of 5) and no window: the window failed, so the reason counts the lost
+    windows and the last error; "fewer than a window, replay with --window-size 5" would be wrong advice."""
+    from topometric_ros.replay import _why_no_window
+    from topometric_ros.window import SlidingWindow
+
+    why = _why_no_window({"scans_processed": 5, "windows_discarded": 0, "window_errors": 1}, SlidingWindow(5),
+                         "ValueError: no planes")
+    assert why == "no window from 5 scans: 0 discarded, 1 failed; last error: ValueError: no planes", why
+    assert _why_no_window({"scans_processed": 4}, SlidingWindow(5), "").startswith(
+        "no window: 4 scans processed, fewer than a window of 5 scans")
+
+
+def test_one_cloud_missing_from_the_recording_is_said(office_bag, tmp_path):
+    """The tenth cloud left out of the recording: one scan missing, noted (in the singular)."""
+    bag_path, _ = office_bag
+    count = {"n": 0}
+
+    def drop_tenth(topic, t, msg, first):
+        count["n"] += topic == "/points"
+        return [] if topic == "/points" and count["n"] == 10 else [(topic, t, msg)]
+
+    s = _notes(_rewritten(bag_path, tmp_path / "one", drop_tenth), tmp_path / "out")
+    assert s["counters"]["scans_missing"] == 1 and s["scans_read"] == 29
+    assert any(n.startswith("the cloud stamps show 1 scan missing (steps of ") for n in s["notes"]), s["notes"]
+
+
+def test_rpe_is_given_only_for_windows_the_ground_truth_covers(office_bag, tmp_path):
+    """Ground truth that stops 3.5 s into the bag: windows inside it have a finite RPE, windows that end after
+    its last pose (one of them partly covered) have none, as a pose outside the ground truth cannot be
+    interpolated."""
+    bag_path, _ = office_bag
+    last = []
+
+    def cut_truth(topic, t, msg, first):
+        if topic == "/odom_gt" and first is not None and t - first > 3.5:
+            return []
+        if topic == "/odom_gt":
+            last.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+        return [(topic, t, msg)]
+
+    res = run(_rewritten(bag_path, tmp_path / "cut", cut_truth), tmp_path / "out", plot=False)
+    end = last[-1]
+    assert len(res.windows) == 6 and any(w["start"] <= end < w["end"] for w in res.windows)
+    assert [bool(np.isfinite(w["rpe"])) for w in res.windows] == [w["end"] <= end for w in res.windows]
+
+
+def test_inspect_takes_every_nth_cloud_up_to_its_limit(office_bag, tmp_path):
+    """every 3, limit 2: clouds 0 and 3 of the bag, two rows, not a third; limit 0: all of every 10th."""
+    from topometric_ros.inspect import inspect_bag
+
+    bag_path, _ = office_bag
+    config = load_config(overrides={"segmentation.mode": "labels"})
+    rows = inspect_bag(bag_path, tmp_path / "a", config, every=3, limit=2, plot=False)
+    assert [r["scan"] for r in rows] == [0, 3] and all("error" not in r for r in rows), rows
+    assert [r["scan"] for r in inspect_bag(bag_path, tmp_path / "b", config, every=10, limit=0, plot=False)] == [0, 10, 20]
+
+
+def test_a_report_holds_an_infinite_value_as_null_not_as_a_crash(tmp_path):
+    """An infinite metric (a z-score over a zero spread) is written as null as NaN is: strict JSON has neither."""
+    from topometric_ros.reports import write_json
+
+    path = write_json(tmp_path / "w.json", {"z_pne": float("inf"), "z_cpv": -np.inf, "pne": float("nan"), "n": 1.5})
+    assert json.loads(path.read_text()) == {"z_pne": None, "z_cpv": None, "pne": None, "n": 1.5}
