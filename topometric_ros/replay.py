@@ -426,7 +426,7 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
         return f"no message of {points} could be read" + (f" ({summary['error']})" if summary["error"] else "")
     if c["dropped_bad_scan"] >= summary["scans_read"]:
         return (f"every cloud of {points} ({summary['scans_read']}) was malformed or empty; "
-                f"last: {summary['last_monitor_error']}")
+                f"last: {_last(summary, 'dropped_bad_scan')}")
     if c["poses_in"] == 0:
         odoms = _of_type(topics, bag.ODOMETRY)
         where = (f"{odom} is not in the bag" if odom not in topics else f"no message of {odom} could be read")
@@ -440,18 +440,23 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
                 + (f"; its transforms on {', '.join(tf)} are not read as poses" if tf else "")
                 + "); the monitor needs the SLAM poses as nav_msgs/msg/Odometry, name the topic with --odom-topic")
     if c["bad_poses"] >= c["poses_in"]:
-        return f"every odometry message of {odom} was invalid; last: {summary['last_monitor_error']}"
+        return f"every odometry message of {odom} was invalid; last: {_last(summary, 'bad_poses')}"
     if c["scan_errors"]:
         hint = ("; mode 'labels' reads the cloud's own label field (simulated bags): use --segmentation network "
                 "(or none) for a real sensor's bag") if config.segmentation.mode == "labels" else ""
-        return f"every scan failed in processing; last: {summary['last_monitor_error']}{hint}"
+        return f"every scan failed in processing; last: {_last(summary, 'scan_errors')}{hint}"
     every = summary.get("odometry_interval_s")
     if c["dropped_no_pose"] and every is not None and every > config.window.max_pose_gap_s:
         return _slow_odometry(every, summary["odometry_messages"], config.window.max_pose_gap_s)
     if c["dropped_no_pose"]:
         return (f"no cloud had odometry within window.max_pose_gap_s = {config.window.max_pose_gap_s} s of its "
-                f"stamp (clouds and odometry on different clocks?); last: {summary['last_monitor_error']}")
+                f"stamp (clouds and odometry on different clocks?); last: {_last(summary, 'dropped_no_pose')}")
     return f"no scan was processed; last monitor error: {summary['last_monitor_error'] or 'none'}"
+
+
+def _last(summary: dict, counter: str) -> str:
+    """The last reason the monitor counted under ``counter`` (its last error of any kind when none)."""
+    return summary.get("last_error_of", {}).get(counter) or summary["last_monitor_error"]
 
 
 def _slow_odometry(every: float, n: int, gap: float) -> str:
@@ -594,7 +599,7 @@ def _summary(bag_path, monitor: Monitor, records: list[dict], feed: _Feed, notes
         "bag_s": round(bag_s, 3), "scans_per_s": round(c["scans_processed"] / wall, 2) if wall > 0 else None,
         "x_realtime": round(bag_s / wall, 2) if wall > 0 else None,
         "extrinsic_source": monitor.extrinsic_source, "counters": c, "error": feed.error, "notes": notes,
-        "last_monitor_error": monitor.last_error,
+        "last_monitor_error": monitor.last_error, "last_error_of": dict(monitor.last_error_of),
         "cpu_ms_per_scan": {"reader": round(feed.reader_cpu_s * per_scan, 2),  # reading + decoding (this thread)
                             **{f"stage{i}": round(t * per_scan, 2) for i, t in enumerate(monitor.stage_cpu_s)}},
         "window": monitor.window.describe(), "window_scans": monitor.window.size,
