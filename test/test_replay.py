@@ -979,3 +979,18 @@ def test_a_report_holds_an_infinite_value_as_null_not_as_a_crash(tmp_path):
 
     path = write_json(tmp_path / "w.json", {"z_pne": float("inf"), "z_cpv": -np.inf, "pne": float("nan"), "n": 1.5})
     assert json.loads(path.read_text()) == {"z_pne": None, "z_cpv": None, "pne": None, "n": 1.5}
+
+
+def test_baselines_learned_mostly_on_alarmed_windows_are_noted_warn_and_error_alike():
+    """Four learning windows, then judged ones: two alarmed of four is not most (no note); two WARN and one ERROR
+    of four is, and the note counts all three."""
+    from topometric_ros.replay import _baseline_notes
+
+    def records(levels):
+        learning = [{"level": lv, "message": "learning baseline (pne 3/4)", "z_pne": float("nan")} for lv in levels]
+        return learning + [{"level": "OK", "message": "ok", "z_pne": 0.5}]
+
+    cfg = load_config()
+    assert _baseline_notes(records(["OK", "WARN", "OK", "ERROR"]), cfg) == []
+    (note,) = _baseline_notes(records(["WARN", "OK", "ERROR", "WARN"]), cfg)
+    assert note.startswith("the PNE/CPV baselines were learned on 4 windows, 3 of them WARN or ERROR"), note
