@@ -590,3 +590,142 @@ def test_warm_up_runs_its_synthetic_scans_to_a_scored_window(model):
         segmenter = load_segmenter(cfg) if mode == "network" else None
         seconds, windows = warm_up(cfg, segmenter)
         assert windows >= 1 and seconds > 0, (model, mode)
+
+
+def test_close_without_a_flush_finishes_every_queued_scan_in_every_stage():
+    """close() (drain) right after feeding: the scans still queued at the input and between the stages are
+    processed before the threads stop; the second stage does not stop while the first still hands it scans."""
+    cfg = config(**{"window.queue_size": 16})
+    import threading
+
+    m = Monitor(cfg, None, floor_window, live=True, stages=split_floor_scan(0.01))
+    feed(m, 100.0 + np.arange(9) / 5.0)
+    closer = threading.Thread(target=m.close, daemon=True)
+    closer.start()
+    closer.join(timeout=20)
+    assert not closer.is_alive(), "close() hangs: a stage stopped while the one before it still had scans for it"
+    c = m.counters
+    assert c["scans_processed"] == 9 and c["windows"] == 3 and c["dropped_scans"] == 0
+
+
+def test_the_scans_in_flight_are_bounded_exactly_by_the_queues():
+    """Live, two stages, the second held: the first stage fills the STAGE_QUEUE between them and waits with one
+    more scan, the input queue holds queue_size, every other scan is dropped at the input and counted; once
+    released, each scan is processed or counted."""
+    import threading
+
+    from topometric_ros.monitor import STAGE_QUEUE
+
+    gate = threading.Event()
+    first, second = split_floor_scan()
+    held = lambda item, cfg: (gate.wait(10), second(item, cfg))[1]  # noqa: E731
+    m = Monitor(config(**{"window.queue_size": 3}), None, floor_window, live=True, stages=(first, held))
+    try:
+        n, full = 20, 3 + STAGE_QUEUE + 2  # input queue, the queue between the stages, one scan in each stage
+        stamps = 100.0 + np.arange(n) / 5.0
+        for t in np.arange(99.5, stamps[-1] + 0.5, 0.05):
+            m.add_pose(t, base_pose(t))
+        for k, t in enumerate(stamps, 1):  # each scan is posed at once; wait for the stages to take what they can
+            m.add_scan(t, floor_points())
+            deadline = time.monotonic() + 5
+            while m.queue_length > max(0, k - (STAGE_QUEUE + 2)) and time.monotonic() < deadline:
+                time.sleep(0.002)
+        time.sleep(0.05)
+        assert m.queue_length == 3 and m.in_flight == full
+        assert m.counters["dropped_queue_full"] == n - full
+    finally:
+        gate.set()
+        m.close()
+    c = m.counters
+    assert c["scans_processed"] == full and c["scans_processed"] + c["dropped_queue_full"] == n
+
+
+def test_scans_waiting_beyond_max_pending_drop_the_oldest_and_count_it():
+    from topometric_ros.monitor import MAX_PENDING
+
+    done = []
+    record = lambda f, c, s, i: (done.append(f.stamp), floor_scan(f, c, s, i))[1]  # noqa: E731
+    m = Monitor(config(**{"window.pose_timeout_s": 60.0}), record, floor_window)
+    n = MAX_PENDING + 10
+    stamps = 100.0 + np.arange(n) / 10.0  # 26.6 s of scans, within pose_timeout_s: none expires
+    for t in stamps:
+        m.add_scan(t, floor_points(20))
+    assert m.pending_length == MAX_PENDING and m.counters["dropped_no_pose"] == 10
+    for t in np.arange(99.0, stamps[-1] + 1.0, 0.05):
+        m.add_pose(t, base_pose(t))
+    m.flush()
+    assert m.counters["scans_processed"] == MAX_PENDING and m.counters["dropped_no_pose"] == 10
+    assert done == pytest.approx(list(stamps[10:]))  # the newest MAX_PENDING were kept
+
+
+def test_scans_waiting_for_odometry_at_a_time_reset_are_counted_as_dropped():
+    m = Monitor(config(), floor_scan, floor_window)
+    m.add_pose(100.0, base_pose(100.0))
+    for t in (100.1, 100.2, 100.3):
+        m.add_scan(t, floor_points())  # no odometry past them: they wait
+    assert m.pending_length == 3
+    m.add_scan(10.0, floor_points())  # stamps went back: the three cannot be posed any more (nor this one:
+    c = m.counters                    # the odometry is at 100 s)
+    assert c["time_resets"] == 1 and c["dropped_no_pose"] == 4 and m.pending_length == 0
+    assert c["scans_in"] == c["dropped_scans"] + m.pending_length + c["scans_processed"]
+
+
+def test_waiting_scans_are_released_when_the_odometry_is_stale_though_scans_still_arrive():
+    """release_waiting judges the odometry's receive clock, not the scans': scans arriving right up to ``now``
+    do not keep scans waiting for odometry that stopped."""
+    m = Monitor(config(**{"health.stale_after_s": 2.0}), floor_scan, floor_window)
+    m.add_pose(100.0, base_pose(100.0), received=500.0)
+    for k in range(4):
+        m.add_scan(100.1 + k, floor_points(), received=500.1 + k)
+    assert m.pending_length >= 1
+    waiting = m.pending_length
+    assert m.release_waiting(501.5) == 0  # odometry 1.5 s old: not stale yet
+    assert m.release_waiting(503.2) == waiting and m.pending_length == 0  # 3.2 s old, a scan came 0.1 s ago
+
+
+def test_the_extrinsic_is_applied_after_the_odometry_pose():
+    """Sensor pose = odometry (child -> map) @ extrinsic (sensor -> child), with odometry that rolls and
+    pitches, where the two orders differ."""
+    tilt = lambda t: base_pose(t) @ geometry.make_pose(  # noqa: E731
+        geometry.rotvec_to_matrix(np.array([0.3, -0.2, 0.0])), [0, 0, 0])
+    ext = [0.4, -0.1, SENSOR_HEIGHT, 0.0, 0.0, np.sin(0.25), np.cos(0.25)]
+    out = []
+    m = Monitor(config(**{"window.extrinsic": ext}), floor_scan, floor_window, on_window=lambda r, s: out.extend(s))
+    feed(m, 100.0 + np.arange(3) / 5.0, pose_fn=tilt)
+    m.flush()
+    assert len(out) == 3
+    for s in out:
+        np.testing.assert_allclose(s.pose, tilt(s.stamp) @ m.extrinsic, atol=1e-6)
+
+
+def test_window_timings_add_up_the_stages_the_scans_and_the_wait():
+    """scan.timings['monitor'] is the compute time of every stage, the window's scans_* timings sum its scans,
+    latency runs from the last scan's arrival (queue waits included) to the result."""
+    d = 0.02
+    first, second = split_floor_scan(d)
+
+    def timed(item, cfg):
+        scan = second(item, cfg)
+        scan.timings["total"] = 1.0 + scan.index
+        return scan
+
+    out = []
+    with Monitor(config(**{"window.queue_size": 16}), None, floor_window, live=True, block=True,
+                 stages=(first, timed), on_window=lambda r, s: out.append((r, s))) as m:
+        feed(m, 100.0 + np.arange(3) / 5.0)
+        m.flush()
+    (result, scans), = out
+    assert all(s.timings["monitor"] >= 2 * d * 1000 for s in scans)  # two stages of d s each
+    assert result.timings["scans_monitor"] == pytest.approx(sum(s.timings["monitor"] for s in scans))
+    assert result.timings["scans_total"] == pytest.approx(1.0 + 2.0 + 3.0)
+    assert result.timings["latency"] >= 2 * d * 1000
+
+
+def test_a_failing_window_consumer_is_told_in_last_error():
+    def consumer(result, scans):
+        raise RuntimeError("consumer broke")
+
+    m = Monitor(config(), floor_scan, floor_window, on_window=consumer)
+    feed(m, 100.0 + np.arange(3) / 5.0)
+    m.flush()
+    assert m.counters["windows"] == 1 and m.last_error == "on_window: RuntimeError: consumer broke"

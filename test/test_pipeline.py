@@ -186,3 +186,13 @@ def test_facade_exports():
 
     assert F is Frame and WindowResult is pipeline.WindowResult
     assert evaluate_window is pipeline.evaluate_window and lc is load_config
+
+
+def test_window_motion_measures_each_step_in_the_sensors_own_frame():
+    """1 m straight ahead, then a 90 deg turn on the spot: 1 m travelled in 2 s and 90 deg turned (a step taken
+    in the map frame would add the lever arm of the turn, √2 m)."""
+    from topometric_ros.pipeline import window_motion
+
+    poses = np.stack([np.eye(4), geometry.yaw_pose(1.0, 0.0, 0.0, 0.0), geometry.yaw_pose(1.0, 0.0, 0.0, np.pi / 2)])
+    speed, turn = window_motion(poses, [10.0, 11.0, 12.0])
+    assert speed == pytest.approx(0.5) and turn == pytest.approx(45.0)
