@@ -729,3 +729,14 @@ def test_a_failing_window_consumer_is_told_in_last_error():
     feed(m, 100.0 + np.arange(3) / 5.0)
     m.flush()
     assert m.counters["windows"] == 1 and m.last_error == "on_window: RuntimeError: consumer broke"
+
+
+def test_a_cloud_dropped_for_its_clock_is_one_of_the_dropped_scans():
+    m = Monitor(config(**{"health.clock_jump_s": 0.5}), floor_scan, floor_window)
+    for k in range(10):
+        m.add_pose(100.0 + 0.05 * k, base_pose(100.0 + 0.05 * k), received=100.0 + 0.05 * k)
+    for t in (100.1, 100.2, 100.3):
+        m.add_scan(t - 0.1, floor_points(), received=t)
+    assert not m.add_scan(101.9, floor_points(), received=101.0)  # 1 s ahead of its clock
+    c = m.counters
+    assert c["dropped_clock"] == 1 and c["dropped_scans"] == 1
