@@ -72,6 +72,33 @@ def test_only_the_body_runs_int8_the_stem_and_head_stay_float():
     assert len(convs) == 13  # the other 11 read int8 activations and weights
 
 
+def test_int8_weights_take_all_8_bits_with_vnni_and_7_without():
+    """ORT's reduce_range: on an AVX2 CPU without VNNI the body's weights take 7 bits (|q| <= 64), so the 16-bit
+    sums of 8-bit products cannot saturate; with VNNI all 8 (|q| up to 127). Read off the quantized graph."""
+    from onnx import numpy_helper
+
+    from topometric_ros.segmentation.checkpoint import build_model
+    from topometric_ros.segmentation.infer import Scorer
+    from topometric_ros.segmentation.model import fold_batchnorm
+
+    card, state = load_weights(SHIPPED)
+    ranges, _ = load_ranges(SHIPPED, state_digest(state))
+    scorer = Scorer(fold_batchnorm(build_model(card, state))).eval()
+    model = onnx.load_from_string(quantize(export_onnx(scorer, 32, 64), ranges))
+    weights = [numpy_helper.to_array(t) for t in model.graph.initializer if t.data_type == onnx.TensorProto.INT8]
+    assert len(weights) >= 11
+    largest = max(int(np.abs(w.astype(np.int32)).max()) for w in weights)
+    assert (largest > 64) == cpu_has_vnni() and largest <= 127, largest
+
+
+def test_auto_precision_runs_int8_exactly_where_the_cpu_runs_int8():
+    """segmentation.precision auto (the default): int8 on this machine when its CPU has VNNI or AVX2 (the shipped
+    ranges fit the shipped weights), float32 otherwise."""
+    assert SegmentationConfig().precision == "auto"
+    seg = Segmenter.from_config(SegmentationConfig())
+    assert seg.precision == ("int8" if cpu_runs_int8() else "float32")
+
+
 def test_int8_gives_the_float32_labels_on_nearly_every_point(frames):
     f32 = Segmenter.from_config(SegmentationConfig(precision="float32"))
     int8 = Segmenter.from_config(SegmentationConfig(precision="int8"))
@@ -88,6 +115,18 @@ def test_int8_without_ranges_for_the_weights_falls_back_to_float32_and_says_why(
     assert any(r.levelno == logging.WARNING and "topometric quantize" in r.getMessage() for r in caplog.records)
     for cfg in (SegmentationConfig(precision="int8", passes=2), SegmentationConfig(precision="int8", backend="eager")):
         assert Segmenter.from_config(cfg).precision == "float32"
+
+
+def test_a_segmenter_of_several_passes_runs_float32_even_when_given_ranges(caplog):
+    """int8 is calibrated for one pass: a Segmenter built with ranges and passes 2 (not only via from_config,
+    which gives it no ranges then) runs its multi-pass network float32 without trying (and failing) int8."""
+    from topometric_ros.segmentation.checkpoint import build_model
+
+    card, state = load_weights(SHIPPED)
+    ranges, _ = load_ranges(SHIPPED, state_digest(state))
+    with caplog.at_level(logging.WARNING):
+        seg = Segmenter(build_model(card, state), card, passes=2, int8_ranges=ranges)
+    assert (seg.backend, seg.precision) == ("onnxruntime", "float32") and "int8" not in caplog.text
 
 
 def _calibrated(folder, frames):
@@ -145,6 +184,9 @@ def test_ranges_of_several_image_shapes_merge_to_the_widest():
                 "data": {"t": {"lowest": arr(lo), "highest": arr(hi), "CLS": "TensorData"}}}
     merged = _merge(cache(-1.0, 2.0), cache(-3.0, 1.0))
     assert merged["data"]["t"]["lowest"]["data"] == [-3.0] and merged["data"]["t"]["highest"]["data"] == [2.0]
+    only_second = cache(-5.0, 5.0)
+    only_second["data"]["u"] = only_second["data"].pop("t")  # a tensor the first shape's cache lacks is kept
+    assert set(_merge(cache(-1.0, 2.0), only_second)["data"]) == {"t", "u"}
     assert _merge({}, cache(0.0, 1.0)) == cache(0.0, 1.0)
 
 

@@ -14,8 +14,9 @@ import torch
 from topometric_ros import classes as C
 from topometric_ros.config import SegmentationConfig, load_config
 from topometric_ros.grid import scan_grid
-from topometric_ros.segmentation.checkpoint import SegmentationError, load_weights, save_weights, state_digest
-from topometric_ros.segmentation.infer import Segmenter, read_out
+from topometric_ros.segmentation.checkpoint import (SegmentationError, build_model, load_weights, save_weights,
+                                                   state_digest)
+from topometric_ros.segmentation.infer import Scorer, Segmenter, _mirror, _spread, read_out
 from topometric_ros.segmentation.metrics import confusion
 from topometric_ros.segmentation.model import ModelSpec, RangeNet, fold_batchnorm
 from topometric_ros.segmentation.projection import ProjectionError, nearest_strided, strided
@@ -142,6 +143,49 @@ def test_two_passes_make_labels_invariant_to_mirroring_the_scan(tmp_path, frames
         Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), passes=2.5))
 
 
+def test_three_passes_add_the_view_turned_by_half_a_fold_mapped_back_to_the_images_pixels():
+    """Scorer passes 3 = the mean softmax of the image, its mirror and the image turned by ``shift`` columns; the
+    turned view's scores are turned back, so its share is the turned image's softmax at the same pixels."""
+    torch.manual_seed(2)
+    net = RangeNet(ModelSpec()).eval().set_circular(True)
+    x = torch.randn(1, 6, 32, 64)
+    two, three = Scorer(net, 2).eval(), Scorer(net, 3).eval()
+    with torch.no_grad():
+        # scores are log-probabilities up to a per-pixel constant: their softmax is the views' mean softmax
+        third = 3 * torch.softmax(three(x), 1) - 2 * torch.softmax(two(x), 1)  # (1, k, 1, h, w): the third view's
+        turned = torch.softmax(net(torch.roll(x, three.shift, -1)), 1)
+        mirrored = torch.softmax(net(_mirror(x) * two.mirror_sign), 1)
+        both = (torch.softmax(net(x), 1) + _mirror(mirrored)) / 2
+    assert three.shift >= 1
+    torch.testing.assert_close(third[:, :, 0], torch.roll(turned, -three.shift, -1), atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(torch.softmax(two(x), 1)[:, :, 0], both, atol=1e-5, rtol=1e-5)
+
+
+def test_a_batch_of_scans_of_several_images_each_gives_every_scan_its_own_labels(tmp_path):
+    """An OS1-64 scan is two interleaved 32-row images: in a batch, each scan reads its labels back from its own
+    two images (the same labels and confidence as alone; eager: the grouping is the same for every backend)."""
+    _, path = _random_weights(tmp_path)
+    seg = Segmenter.from_config(SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path),
+                                                   backend="eager"))
+    scans, _ = simulated_frames("office1", 2, seed=3, sensor="OS1-64")
+    batch = seg.predict_batch([(f.points, f.ring, f.intensity) for f in scans])
+    for f, (labels, conf) in zip(scans, batch):
+        one = seg.predict(f.points, f.ring, f.intensity)
+        np.testing.assert_array_equal(labels, one[0])
+        np.testing.assert_allclose(conf, one[1], atol=1e-5)
+    assert not np.array_equal(batch[0][0][:1000], batch[1][0][:1000])
+
+
+def test_a_point_with_no_segmented_neighbour_is_other_at_confidence_zero():
+    """max_beams: a point whose nearest_strided source is -1 (no segmented neighbour in range) takes OTHER at
+    confidence 0, not the label and confidence of the first segmented point."""
+    labels, conf = np.array([3, 5], np.uint8), np.array([0.9, 0.6], np.float32)
+    got_labels, got_conf = _spread(labels, conf, np.array([1, -1, 0, 1]))
+    assert got_labels.dtype == np.uint8 and got_conf.dtype == np.float32
+    assert got_labels.tolist() == [5, C.OTHER, 3, 5]
+    np.testing.assert_array_equal(got_conf, np.array([0.6, 0.0, 0.9, 0.6], np.float32))
+
+
 def test_max_beams_segments_every_kth_beam_and_gives_the_rest_their_neighbours_labels(tmp_path, frames):
     """segmentation.max_beams 16 on a 32-beam scan: the network sees rows 0, 2, 4, ... alone (their labels are
     those of that 16-row scan, exactly), every other point takes the label and confidence of its
@@ -258,6 +302,20 @@ def test_modified_weights_fail_the_checksums(tmp_path):
     torch.save(doc, path)
     with pytest.raises(SegmentationError, match="no state_sha256"):
         load_weights(path)
+
+
+def test_weights_with_non_finite_values_or_another_dtype_are_refused(tmp_path):
+    """A file whose digest is right but whose tensors are NaN, or float64 where the network holds float32, is
+    refused naming the tensor (NaN weights would give every point a meaningless label, silently)."""
+    _, path = _random_weights(tmp_path)
+    card, state = load_weights(path)
+    nan = dict(state, **{"head.bias": torch.full_like(state["head.bias"], float("nan"))})
+    with pytest.raises(SegmentationError, match="'head.bias' has non-finite values"):
+        build_model(card, nan)
+    double = dict(state, **{"head.bias": state["head.bias"].double()})
+    with pytest.raises(SegmentationError, match="'head.bias' is .*torch.float64, the network needs .*torch.float32"):
+        build_model(card, double)
+    build_model(card, state)  # the file as saved builds
 
 
 def test_bad_device_is_a_clear_error(tmp_path):
@@ -428,9 +486,11 @@ def test_segment_frame_follows_the_configured_mode(tmp_path, frames):
     seg = Segmenter.from_config(cfg)
     labels, conf = segment_frame(f, cfg, seg)
     np.testing.assert_array_equal(labels, seg.predict(f.points, f.ring, f.intensity)[0])
-    strict, _ = segment_frame(f, SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path), min_confidence=float(np.median(conf))),
-                              seg)
+    low = float(np.median(conf))
+    strict, _ = segment_frame(f, SegmentationConfig(knn=0, floor_band=0, object_gap=0, weights=str(path),
+                                                    min_confidence=low), seg)
     assert (strict == C.OTHER).sum() > (labels == C.OTHER).sum()
+    np.testing.assert_array_equal(strict, np.where(conf < low, C.OTHER, labels))  # the confident keep their labels
     with pytest.raises(SegmentationError, match="no label field"):
         segment_frame(type(f)(points=f.points, pose=f.pose, stamp=0.0), SegmentationConfig(mode="labels"))
     with pytest.raises(SegmentationError, match="needs a Segmenter"):

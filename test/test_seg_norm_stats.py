@@ -76,6 +76,9 @@ def test_statistics_are_refused_unless_they_were_made_for_these_weights(tmp_path
     assert load_stats(weights, digest, state) == (stats, "")
     assert "made for other weights" in load_stats(weights, "0" * 64, state)[1]
     doc = json.loads(path.read_text())
+    path.write_text(json.dumps({**doc, "format_version": 2}))  # a later format is not read as this one
+    assert load_stats(weights, digest, state)[0] is None
+    assert "not a file of non-repetitive statistics of format 1" in load_stats(weights, digest, state)[1]
     doc["statistics"].pop(next(iter(stats)))
     path.write_text(json.dumps(doc))
     assert "do not match the network" in load_stats(weights, digest, state)[1]

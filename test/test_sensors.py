@@ -256,3 +256,71 @@ def test_elevations_in_runs_wider_than_a_beam_are_no_beams():
 
     pts = _beams(np.concatenate([lo + np.linspace(0.0, 2.0, 200) for lo in np.arange(10) * 3.0 - 15]), per_beam=10)
     assert beam_centres(pts) is None and scan_grid(pts).source == "elevation bins (non-repetitive)"
+
+
+def test_each_sensors_beams_firings_and_rate_are_its_datasheets():
+    """Facts from the makers' datasheets and manuals, independent of the tables' digits: the field of view, how the
+    beams are spaced (uniform, or dense near the horizon), the firings per revolution and 10 Hz. The simulator and
+    the grid read the same tables, so a wrong table (a beam off, a uniform table for a gradient one) is otherwise
+    simulated and read back as consistently wrong."""
+    def spacing(name):
+        return np.diff(sensor(name).elevation_deg)
+
+    for name, beams, lo, hi in (("VLP-16", 16, -15.0, 15.0), ("VLP-32C", 32, -25.0, 15.0),
+                                ("HDL-32E", 32, -30.67, 10.67), ("HDL-64E", 64, -24.711, 2.0208),
+                                ("XT32", 32, -16.0, 15.0)):
+        m = sensor(name)
+        assert (m.beams, m.elevation_deg[0], m.elevation_deg[-1]) == (beams, lo, hi), name
+    np.testing.assert_allclose(spacing("VLP-16"), 2.0)
+    np.testing.assert_allclose(spacing("XT32"), 1.0)
+    np.testing.assert_allclose(spacing("HDL-32E"), 1.33, atol=0.011)
+    # gradient tables: VLP-32C 0.333 deg apart around the horizon, 9.4 deg at the bottom; OS1-32G dense near it too
+    assert spacing("VLP-32C").min() == pytest.approx(0.333, abs=1e-3) and spacing("VLP-32C")[0] > 9
+    g = spacing("OS1-32G")
+    assert g.min() < 0.4 and g.max() > 2.5 and sensor("OS1-32G").beams == 32
+    for family in "012":  # the uniform Ouster variants: every 2nd / 4th beam of the 128's optics
+        full = spacing(f"OS{family}-128").mean()
+        for beams, k in ((64, 2), (32, 4)):
+            m = sensor(f"OS{family}-{beams}")
+            assert m.beams == beams and spacing(m.name).mean() == pytest.approx(k * full, rel=0.03), m.name
+    assert {m.columns for m in SENSORS.values() if m.driver == "ouster"} == {1024}  # 1024x10 mode
+    assert sensor("VLP-16").columns == sensor("VLP-32C").columns == 1800  # 0.2 deg at 10 Hz
+    assert abs(sensor("HDL-32E").columns - 1 / (10 * 46.08e-6)) < 0.01 * 2170  # one firing cycle each 46.08 us
+    assert {m.rate_hz for m in SENSORS.values()} == {10.0}
+    mid = sensor("Mid-360")
+    assert (mid.fov_deg, mid.points_per_scan, mid.pattern) == ((-7.0, 52.0), 20000, "non_repetitive")
+
+
+def test_each_driver_layout_is_its_drivers_point_struct():
+    """The bytes each driver writes (docs/design.md's table, from the drivers' sources): a real bag is read by
+    these offsets and types, while the simulator writes by them too, so a wrong one round-trips unnoticed."""
+    from topometric_ros.sensors import FLOAT32, FLOAT64, UINT8, UINT16, UINT32
+
+    want = {
+        "velodyne": ((("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32), ("intensity", 12, FLOAT32),
+                      ("ring", 16, UINT16), ("time", 18, FLOAT32)), 22, ("time", "s", False, "last", False)),
+        "ouster": ((("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32), ("intensity", 16, FLOAT32),
+                    ("t", 20, UINT32), ("reflectivity", 24, UINT16), ("ring", 26, UINT16), ("ambient", 28, UINT16),
+                    ("range", 32, UINT32)),
+                   48, ("t", "ns", False, "first", True)),
+        "hesai": ((("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32), ("intensity", 12, FLOAT32),
+                   ("ring", 16, UINT16), ("timestamp", 18, FLOAT64)), 26, ("timestamp", "s", True, "first", True)),
+        "livox": ((("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32), ("intensity", 12, FLOAT32),
+                   ("tag", 16, UINT8), ("line", 17, UINT8), ("timestamp", 18, FLOAT64)), 26,
+                  ("timestamp", "ns", True, "first", False)),
+    }
+    assert set(LAYOUTS) == set(want)
+    for name, (fields, step, (time_field, unit, absolute, stamp, top_first)) in want.items():
+        lay = LAYOUTS[name]
+        assert (lay.fields, lay.point_step) == (fields, step), name
+        assert (lay.time_field, lay.time_unit, lay.time_absolute, lay.stamp, lay.ring_top_first) == \
+            (time_field, unit, absolute, stamp, top_first), name
+    assert [(n, LAYOUTS[n].organised, LAYOUTS[n].no_return) for n in want] == [
+        ("velodyne", "firings x beams", "nan"), ("ouster", "beams x columns", "nan"), ("hesai", "", "zero"),
+        ("livox", "", "zero")]
+
+
+def test_a_sensor_is_found_by_its_name_in_any_case():
+    assert sensor("vlp-16") is sensor("VLP-16") is SENSORS["VLP-16"] and sensor("os1-32g").name == "OS1-32G"
+    with pytest.raises(ValueError, match="unknown sensor 'VLP-17'; known: VLP-16, VLP-32C"):
+        sensor("VLP-17")
