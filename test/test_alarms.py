@@ -328,3 +328,188 @@ def test_the_detection_table_is_strict_json_when_a_rate_is_undefined(tmp_path):
     _write(tmp_path, table)
     doc = json.loads((tmp_path / "detection.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
     assert doc["detection_rate"] is None and (tmp_path / "detection.png").stat().st_size > 0
+
+
+def _runs_for_cells():
+    """Helpers of the scoring tests below: a Run of the simulator's odometry or KISS-ICP, drift-free or not."""
+    from topometric_ros.experiments.alarms import Run
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig
+
+    def run(mode="none", estimate="sim"):
+        return Run(SimConfig(scene="garage", frames=10, drift=DriftSpec(mode, 1.0) if mode != "none" else DriftSpec()),
+                   estimate)
+    return run
+
+
+def _limits(recs, true_rot=0.1):
+    for r in recs:
+        r.update(rot_rate_warn_at=0.6, trans_rate_warn_at=0.05, true_rot_rate=true_rot, true_trans_rate=0.01)
+    return recs
+
+
+def test_an_episode_starting_as_a_window_ends_is_judged_from_the_next_window():
+    """A window whose last scan is the episode's start saw none of the drift: "the first window ending after its
+    start" is the next one, so an alarm in the earlier window neither counts nor starts the latency."""
+    recs = records(["OK", "WARN", "OK", "OK", "WARN"])  # ends 0.8, 1.8, 2.8, 3.8, 4.8
+    hit = episode_hits(recs, [{"start": 1.8, "end": 5.0}], within=2)[0]
+    assert hit["latency_windows"] == 2 and not hit["detected"]
+
+
+def test_an_episode_after_the_last_window_is_not_scored():
+    """An episode that starts after the bag's last window (no window to alarm in) is neither detected nor missed:
+    the table counts only the episodes its windows cover."""
+    run = _runs_for_cells()
+    recs = records(["OK", "WARN", "OK", "OK"])  # ends up to 3.8
+    episodes = [{"start": 0.9, "end": 3.0, "rot_rate": 0.0, "trans_rate": 0.0},
+                {"start": 10.0, "end": 15.0, "rot_rate": 0.0, "trans_rate": 0.0}]
+    assert [h["covered"] for h in episode_hits(recs, episodes)] == [True, False]
+    table = score([(run("r"), recs, {}, {"episodes": episodes})], within=2)
+    assert table["episodes"] == table["detected"] == 1 and table["detection_rate"] == 1.0
+
+
+def test_clean_stretches_of_drift_bags_count_their_own_minutes_and_only_false_alarms():
+    """A drift bag of 20 windows of 6 s, its episode from 30 s to 40 s: the clean stretches are the 5 windows
+    ending by 30 s and the 11 starting >= 50 s (16 windows, 1.6 min; 11 of them, 1.1 min, after the episode).
+    Three alarms there: one where the SLAM truly drifted past the limit (confirmed, strict only), two false
+    (one before, one after the episode). A drift-free bag of 1 min adds 1 false WARN: its (speed, estimate)
+    cell holds 3 false WARNs in 2.6 min."""
+    run = _runs_for_cells()
+    levels = ["OK"] * 20
+    levels[2] = levels[5] = levels[12] = levels[15] = "WARN"
+    drift = _limits(records(levels, dt=6.0))
+    drift[12]["true_trans_rate"] = 0.3  # the SLAM's own slide, caught
+    drift[5]["true_rot_rate"] = 1.0  # the episode's window: the estimate truly over the limit
+    free = _limits(records(["OK"] * 9 + ["WARN"], dt=6.0))
+    truth = {"episodes": [{"start": 30.0, "end": 40.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
+    table = score([(run("none"), free, {}, None), (run("r"), drift, {}, truth)], within=2)
+    c = table["clean_stretches"]
+    assert c["windows"] == 16 and c["minutes"] == pytest.approx(1.6)
+    assert c["false_warn_windows"] == 2 and c["strict_warn_windows"] == 3
+    assert c["after_windows"] == 11 and c["after_minutes"] == pytest.approx(1.1) and c["after_false_warn_windows"] == 1
+    assert table["clean_false_warns_per_10min"] == pytest.approx(10 * 2 / 1.6)
+    (row,) = table["rows"]
+    assert (row["clean_false_warns"], row["clean_strict_warns"], row["clean_real_drift"]) == (2, 3, 1)
+    assert row["clean_minutes"] == pytest.approx(1.6) and row["detected"] == row["truly_over"] == 1
+    (cell,) = table["cells"]
+    assert cell["minutes"] == pytest.approx(2.6) and (cell["false_warns"], cell["strict_warns"]) == (3, 4)
+    assert cell["false_warns_per_10min"] == pytest.approx(30 / 2.6)
+
+
+def test_detected_and_truly_over_counts_only_the_episodes_that_are_both():
+    """Two drift bags whose estimates truly pass the limit in the episode's first windows; one is alarmed, the
+    other not: 2 truly over, 1 of them detected."""
+    run = _runs_for_cells()
+    truth = {"episodes": [{"start": 1.5, "end": 4.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
+    alarmed = _limits(records(["OK", "WARN", "OK", "OK", "OK"]), true_rot=1.0)
+    quiet = _limits(records(["OK"] * 5), true_rot=1.0)
+    table = score([(run("r"), alarmed, {}, truth), (run("t"), quiet, {}, truth)], within=2)
+    assert (table["detected"], table["episodes"]) == (1, 2)
+    assert (table["truly_over"], table["detected_truly_over"]) == (2, 1)
+    (cell,) = table["cells"]
+    assert (cell["truly_over"], cell["detected_truly_over"]) == (2, 1)
+
+
+def test_a_true_drift_right_at_the_limit_is_real_drift():
+    """The monitor WARNs at a rate >= its limit (health.py); the score calls a true drift at the limit real too."""
+    from topometric_ros.experiments.alarms import real_drift
+
+    assert real_drift({"true_rot_rate": 0.6, "rot_rate_warn_at": 0.6})
+    assert not real_drift({"true_rot_rate": 0.59, "rot_rate_warn_at": 0.6})
+
+
+def test_cells_keep_each_estimate_apart():
+    """At one speed, the simulator's odometry and KISS-ICP are two cells: a false WARN of the one's drift-free
+    bag and the other's detection do not mix."""
+    run = _runs_for_cells()
+    truth = {"episodes": [{"start": 1.5, "end": 4.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
+    free_sim = _limits(records(["OK"] * 9 + ["WARN"], dt=6.0))
+    free_kiss = _limits(records(["OK"] * 10, dt=6.0))
+    table = score([(run("none", "sim"), free_sim, {}, None), (run("none", "kiss"), free_kiss, {}, None),
+                   (run("r", "sim"), _limits(records(["OK"] * 5)), {}, truth),
+                   (run("r", "kiss"), _limits(records(["OK", "WARN", "OK", "OK", "OK"])), {}, truth)], within=2)
+    cells = {c["estimate"]: c for c in table["cells"]}
+    assert set(cells) == {"sim", "kiss"}
+    assert (cells["sim"]["false_warns"], cells["sim"]["detected"], cells["sim"]["episodes"]) == (1, 0, 1)
+    assert (cells["kiss"]["false_warns"], cells["kiss"]["detected"], cells["kiss"]["episodes"]) == (0, 1, 1)
+    # 1 min of drift-free bag and the drift bag's first window (1 s, before the episode) in each
+    assert cells["sim"]["minutes"] == pytest.approx(1 + 1 / 60) and cells["kiss"]["minutes"] == pytest.approx(1 + 1 / 60)
+
+
+def test_accuracy_ratios_are_medians_within_an_episode_and_over_episodes():
+    """Rotation read 1, 1 and 4 °/s of 2 °/s injected in one episode: 0.5 (the median, not the mean 1.0); two
+    more episodes read 0.5 and 3.0: the cell's ratio is the median over episodes, 0.5 (not the mean 1.33)."""
+    from topometric_ros.experiments.alarms import rate_accuracy
+
+    run = _runs_for_cells()
+    reads = [1.0, 1.0, 4.0, 0.0, 1.0, 0.0, 6.0]  # windows 0-2: episode 1; 4: episode 2; 6: episode 3
+    recs = [{**r, "rot_rate": v, "trans_rate": 0.0} for r, v in zip(_limits(records(["OK"] * 7)), reads)]
+    inj = np.radians(2.0)
+    episodes = [{"start": -0.1, "end": 2.9, "rot_rate": inj, "trans_rate": 0.0},
+                {"start": 3.9, "end": 4.9, "rot_rate": inj, "trans_rate": 0.0},
+                {"start": 5.9, "end": 6.9, "rot_rate": inj, "trans_rate": 0.0}]
+    assert [a["rot_rate"] for a in rate_accuracy(recs, episodes)] == pytest.approx([0.5, 0.5, 3.0])
+    (cell,) = score([(run("r"), recs, {}, {"episodes": episodes})], within=2)["cells"]
+    assert cell["rot_rate"] == pytest.approx(0.5)
+
+
+def test_a_dropped_window_does_not_stretch_the_time_the_others_stand_for():
+    """Windows every 3 s with one missing: each stands for 3 s (the median spacing), 99 windows are 4.95 min."""
+    run = _runs_for_cells()
+    recs = records(["OK"] * 100, dt=3.0)
+    del recs[50]
+    table = score([(run("none"), recs, {}, None)], within=2)
+    assert table["drift_free"]["minutes"] == pytest.approx(99 * 3.0 / 60)
+
+
+def test_rate_margins_look_at_the_first_windows_of_an_episode_only():
+    """An episode's rate is the largest of its first ``within`` windows: a larger reading in the third is not."""
+    from topometric_ros.experiments.alarms import rate_margins
+
+    run = _runs_for_cells()
+    recs = [{**r, "rot_rate": v, "trans_rate": 0.0}
+            for r, v in zip(records(["OK"] * 5), [0.1, 0.6, 0.7, 5.0, 0.1])]
+    m = rate_margins([(run("r"), recs, {}, {"episodes": [{"start": 0.9, "end": 4.0}]})], within=2)
+    assert m["rot_rate"]["episode_min"] == 0.7
+
+
+def test_the_calibration_false_rate_pools_drift_free_bags_and_clean_stretches():
+    """1 false WARN in 5 min of drift-free bags and 1 in 5 min of clean stretches: 1 per 10 min."""
+    from topometric_ros.experiments.alarms import _false_rate
+
+    table = {"drift_free": {"false_warn_windows": 1, "minutes": 5.0},
+             "clean_stretches": {"false_warn_windows": 1, "minutes": 5.0}}
+    assert _false_rate(table) == pytest.approx(2.0 * 10 / 10.0)
+
+
+def test_calibration_and_evaluation_use_their_own_trajectory_seeds_and_speeds_their_own_bags():
+    """No trajectory seed is shared between the splits (nor between the speeds of a split): the same path in a
+    new floor plan is not a new bag for the held-out table."""
+    scenes = ["garage", "office1"]
+    cal = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="calibration", speeds=(0.3, 1.5))]
+    ev = [r.sim for r in plan_bags(scenes, 100, 5, 200, split="evaluation", speeds=(0.3, 1.5))]
+    assert {s.seed for s in cal}.isdisjoint({s.seed for s in ev})
+    assert len({s.seed for s in ev}) == len(ev) and len({s.seed for s in cal}) == len(cal)
+
+
+def test_a_setting_that_misses_a_simulated_odometry_episode_is_never_chosen():
+    """The rate sweep's scene of test_the_rate_sweep_picks_...: margin 4 is quiet (no false WARN) but misses the
+    episode on the simulator's own odometry, margin 2 is noisy: with those two only, nothing is chosen."""
+    from topometric_ros.experiments.alarms import Run, sweep_rates
+    from topometric_ros.sim.drift import DriftSpec
+    from topometric_ros.sim.writer import SimConfig
+
+    def run(trans):
+        recs = records(["OK"] * len(trans))
+        for r, v in zip(recs, trans):
+            r.update(pne=-8.0, cpv=1e-4, n_planes=40, rot_rate=0.1, trans_rate=v, speed=0.0, turn_rate=0.0)
+        return recs
+    runs = [(Run(SimConfig(scene="garage", frames=10)), run([0.09] * 45 + [0.25] + [0.09] * 14), {}, None),
+            (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0))), run([0.09] * 20 + [0.34] * 6 + [0.09] * 4),
+             {}, {"episodes": [{"start": 19.9, "end": 26.0, "rot_rate": 0.0, "trans_rate": 0.25}]})]
+    grid = {"noise_margin": (2.0, 4.0), "noise_quantile": (0.75,), "noise_max_factor": (10.0,)}
+    sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, 1.0, grid)
+    rows = {r["noise_margin"]: r for r in sweep}
+    assert rows[4.0]["worst_cell_false_per_10min"] <= 1.0 and rows[4.0]["detected"] == 0
+    assert rows[2.0]["worst_cell_false_per_10min"] > 1.0
+    assert chosen is None

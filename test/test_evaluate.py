@@ -145,3 +145,51 @@ def test_a_spec_that_cannot_run_is_refused_when_made_not_when_run():
                           ({"labels": ("network", "oracle")}, "oracle")):
         with pytest.raises(ValueError, match=words):
             replace(quick, **change)
+
+
+def test_the_correlation_table_pools_windows_three_ways_from_hand_made_runs():
+    """Three trajectories of 3 windows (RPE 1, 2, 3): PNE rises with RPE in two, falls in the third; the
+    baselines (MME...) exist on the first two windows of each trajectory only. 'all' pools the 9 windows,
+    'common' the 6 that have every metric, 'per-trajectory' is the median over trajectories (1.0, not the mean
+    1/3), each of exactly 3 windows (enough for a correlation); a run of another scale is left out."""
+    from topometric_ros.experiments.evaluate import correlation_table
+
+    spec = ExperimentSpec(scenes=("office1",), trajectories=3, frames=100, windows=(5,), noises=("r",), scales=(1.0,),
+                          labels=("gt",), baseline_windows=2)
+    rpe = np.array([1.0, 2.0, 3.0])
+
+    def data(pne):
+        base = np.array([1.0, 2.0, np.nan])
+        return {"window": np.arange(3), "rpe": rpe, "pne": np.asarray(pne, float), "cpv": rpe ** 2,
+                "mme": base, "mpv": base, "mom": base}
+    runs = [(("gt", "office1", 0, 5, "r", 1.0), data([1, 2, 3])), (("gt", "office1", 1, 5, "r", 1.0), data([1, 2, 4])),
+            (("gt", "office1", 2, 5, "r", 1.0), data([3, 2, 1])),
+            (("gt", "office1", 3, 5, "r", 2.0), data([np.nan, np.nan, 5.0]))]  # another scale: not this setting's
+    rows = {(r["windows"], r["metric"]): r for r in correlation_table(spec, runs)}
+    assert rows["all", "pne"]["n"] == 9 and rows["all", "mme"]["n"] == 6
+    assert rows["common", "pne"]["n"] == 6 and rows["common", "cpv"]["n"] == 6
+    assert rows["common", "mme"]["spearman"] == pytest.approx(1.0)
+    assert rows["per-trajectory", "pne"]["n"] == 3 and rows["per-trajectory", "pne"]["spearman"] == pytest.approx(1.0)
+    assert rows["per-trajectory", "cpv"]["spearman"] == pytest.approx(1.0)
+    assert ("per-trajectory", "mme") not in rows  # the baselines have too few windows per trajectory
+
+
+def test_the_claims_are_checked_on_common_windows_from_twenty_baseline_windows():
+    from topometric_ros.experiments.evaluate import main_pool
+
+    def spec(baseline_windows):
+        return ExperimentSpec(scenes=("office1", "garage"), trajectories=2, baseline_windows=baseline_windows)
+    assert main_pool(spec(5)) == "common" and main_pool(spec(4)) == "all"  # 5 x 2 x 2 = 20 windows; 16
+
+
+def test_a_multi_relation_of_exactly_the_claimed_bound_holds():
+    """The claim is Multi-relation(PNE, CPV, RPE) >= 0.9: 0.9 itself holds, 0.89 does not."""
+    from topometric_ros.experiments.evaluate import claims
+
+    spec = ExperimentSpec(scenes=("office1",), trajectories=1, windows=(5,), noises=("rt",), scales=(1.0,),
+                          labels=("gt",), baseline_windows=1)
+    for mr, verdict in ((0.9, "— holds"), (0.89, "— does NOT hold")):
+        tables = {"correlations": [], "multirelation": [dict(labels="gt", noise="rt", scale=1.0, windows="all",
+                                                             mr_pne_cpv_rpe=mr)]}
+        (line,) = claims(spec, tables, "gt")
+        assert line.endswith(verdict), line

@@ -193,6 +193,18 @@ def test_plane_quality_definitions():
     assert static_only["n_truth"] == 0 and np.isnan(static_only["recall"])
 
 
+def test_plane_quality_boundaries_are_inclusive():
+    """A unit of exactly min_points points is a ground-truth plane, and a plane holding exactly half of a unit's
+    points recalls it (the definitions say >= both times)."""
+    labels = np.full(600, C.WALL, np.uint8)
+    instance = np.repeat([0, 1], [200, 400])
+    assign = np.full(600, -1)
+    assign[:200] = 0  # instance 0 whole: exactly min_points
+    assign[200:400] = 1  # exactly half of instance 1
+    q = plane_quality(assign, labels, instance, min_points=200)
+    assert q["n_truth"] == 2 and q["n_recalled"] == 2 and q["missed"] == []
+
+
 def test_coplanar_recall_judges_a_plane_by_its_geometric_plane():
     """Instances 0 and 1 lie in one geometric plane (a wall either side of a door, or two pillar faces in a
     row), instance 2 in another. One plane joining 0 and 1 recalls both (strictly only the bigger one, its
