@@ -1,5 +1,5 @@
-"""cloud.py: any valid layout round-trips; any corruption raises CloudError and nothing else; read_scan keeps the
-returns with their own fields."""
+"""cloud.py: any valid layout round-trips; any corruption raises CloudError and nothing else; an organised cloud's
+beams come from its shorter side."""
 from types import SimpleNamespace
 
 import numpy as np
@@ -175,53 +175,6 @@ def test_rosbags_message_round_trip_through_cdr():
         np.testing.assert_array_equal(out[k], v)
     assert back.header.stamp.sec == 1_700_000_000
     assert abs(back.header.stamp.nanosec - 123456789) < 1000  # float64 seconds resolve ~0.24 µs at 1.7e9 s
-
-
-# ---- read_scan: which points it keeps, and their fields ---------------------------------------------------
-
-def _scan_cloud(**arrays):
-    """A height-1 cloud of the given per-point arrays (x, y, z default to points 1..5 m out on a line)."""
-    n = len(next(iter(arrays.values())))
-    base = {"x": np.linspace(1, 5, n), "y": np.linspace(-2, 2, n), "z": np.zeros(n)}
-    return make_cloud({**base, **arrays}, 1.7e9, "lidar", rosbags_types(bag.typestore()))
-
-
-def test_a_point_on_the_sensors_z_axis_is_a_return_only_all_zero_is_no_return():
-    x, y, z = (np.array(v, np.float32) for v in ([0, 0, 0, 1], [0, 0, 0, 1], [2.5, -1, 0, 1]))
-    scan = read_scan(_scan_cloud(x=x, y=y, z=z))
-    assert scan.dropped == {"nonfinite": 0, "no_return": 1}
-    np.testing.assert_array_equal(scan.points, [[0, 0, 2.5], [0, 0, -1], [1, 1, 1]])
-
-
-def test_a_beam_id_equal_to_the_beam_count_is_bad_and_one_below_it_is_not():
-    from topometric_ros.grid import MAX_BEAMS
-
-    ring = np.array([0, MAX_BEAMS - 1, MAX_BEAMS, 15, 16], np.int32)
-    scan = read_scan(_scan_cloud(x=np.arange(1.0, 6.0), ring=ring))
-    assert scan.dropped["bad_beam"] == 1 and sorted(scan.beam) == [0, 15, 16, MAX_BEAMS - 1]
-    scan16 = read_scan(_scan_cloud(x=np.arange(1.0, 6.0), ring=ring), max_beams=16)
-    assert scan16.dropped["bad_beam"] == 3 and sorted(scan16.beam) == [0, 15]
-
-
-def test_the_points_left_after_bad_beams_keep_their_own_time_intensity_and_label():
-    ring = np.array([0, 300, 1, 2, -1, 3], np.int32)
-    t = np.linspace(0.0, 0.05, 6).astype(np.float32)
-    scan = read_scan(_scan_cloud(x=np.arange(1.0, 7.0), ring=ring, t=t, intensity=np.arange(6, dtype=np.float32) * 10,
-                                 label=np.arange(6, dtype=np.uint8)))
-    kept = [0, 2, 3, 5]
-    assert scan.dropped["bad_beam"] == 2
-    np.testing.assert_array_equal(scan.points[:, 0], np.arange(1.0, 7.0)[kept])
-    np.testing.assert_array_equal(scan.beam, ring[kept])
-    np.testing.assert_array_equal(scan.time, t[kept])
-    np.testing.assert_array_equal(scan.intensity, np.float32(kept) * 10)
-    np.testing.assert_array_equal(scan.labels, kept)
-
-
-def test_a_label_of_255_is_a_class_and_256_is_out_of_range():
-    scan = read_scan(_scan_cloud(x=np.arange(1.0, 4.0), label=np.array([1, 255, 2], np.uint16)))
-    assert list(scan.labels) == [1, 255, 2]
-    scan = read_scan(_scan_cloud(x=np.arange(1.0, 4.0), label=np.array([1, 256, 2], np.uint16)))
-    assert scan.labels is None and "outside 0..255" in scan.notes[-1]
 
 
 @pytest.mark.parametrize("beams_first", [True, False])

@@ -108,6 +108,44 @@ def test_a_float_or_out_of_range_label_field_is_not_used():
     assert list(scan.labels) == [1, 2, 3]
 
 
+def test_a_point_on_the_sensors_z_axis_is_a_return_only_all_zero_is_no_return():
+    x, y, z = (np.array(v, np.float32) for v in ([0, 0, 0, 1], [0, 0, 0, 1], [2.5, -1, 0, 1]))
+    scan = read_scan(_cloud(x=x, y=y, z=z))
+    assert scan.dropped == {"nonfinite": 0, "no_return": 1}
+    np.testing.assert_array_equal(scan.points, [[0, 0, 2.5], [0, 0, -1], [1, 1, 1]])
+
+
+def test_a_beam_id_equal_to_the_beam_count_is_bad_and_one_below_it_is_not():
+    from topometric_ros.grid import MAX_BEAMS
+
+    ring = np.array([0, MAX_BEAMS - 1, MAX_BEAMS, 15, 16], np.int32)
+    scan = read_scan(_cloud(x=np.arange(1.0, 6.0), ring=ring))
+    assert scan.dropped["bad_beam"] == 1 and sorted(scan.beam) == [0, 15, 16, MAX_BEAMS - 1]
+    scan16 = read_scan(_cloud(x=np.arange(1.0, 6.0), ring=ring), max_beams=16)
+    assert scan16.dropped["bad_beam"] == 3 and sorted(scan16.beam) == [0, 15]
+
+
+def test_the_points_left_after_bad_beams_keep_their_own_time_intensity_and_label():
+    ring = np.array([0, 300, 1, 2, -1, 3], np.int32)
+    t = np.linspace(0.0, 0.05, 6).astype(np.float32)
+    scan = read_scan(_cloud(x=np.arange(1.0, 7.0), ring=ring, t=t, intensity=np.arange(6, dtype=np.float32) * 10,
+                            label=np.arange(6, dtype=np.uint8)))
+    kept = [0, 2, 3, 5]
+    assert scan.dropped["bad_beam"] == 2
+    np.testing.assert_array_equal(scan.points[:, 0], np.arange(1.0, 7.0)[kept])
+    np.testing.assert_array_equal(scan.beam, ring[kept])
+    np.testing.assert_array_equal(scan.time, t[kept])
+    np.testing.assert_array_equal(scan.intensity, np.float32(kept) * 10)
+    np.testing.assert_array_equal(scan.labels, kept)
+
+
+def test_a_label_of_255_is_a_class_and_256_is_out_of_range():
+    scan = read_scan(_cloud(x=np.arange(1.0, 4.0), label=np.array([1, 255, 2], np.uint16)))
+    assert list(scan.labels) == [1, 255, 2]
+    scan = read_scan(_cloud(x=np.arange(1.0, 4.0), label=np.array([1, 256, 2], np.uint16)))
+    assert scan.labels is None and "outside 0..255" in scan.notes[-1]
+
+
 def test_a_sparse_ring_cloud_gets_rows_inside_its_grid():
     """Beam ids missing from grid's every-5th-point sample got uninitialised ranks (rows in the millions and a
     36 GB allocation in plane detection)."""
