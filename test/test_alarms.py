@@ -330,16 +330,14 @@ def test_the_detection_table_is_strict_json_when_a_rate_is_undefined(tmp_path):
     assert doc["detection_rate"] is None and (tmp_path / "detection.png").stat().st_size > 0
 
 
-def _runs_for_cells():
-    """Helpers of the scoring tests below: a Run of the simulator's odometry or KISS-ICP, drift-free or not."""
+def _run(mode="none", estimate="sim"):
+    """A Run of the scoring tests below: the simulator's odometry or KISS-ICP, drift-free or with drift ``mode``."""
     from topometric_ros.experiments.alarms import Run
     from topometric_ros.sim.drift import DriftSpec
     from topometric_ros.sim.writer import SimConfig
 
-    def run(mode="none", estimate="sim"):
-        return Run(SimConfig(scene="garage", frames=10, drift=DriftSpec(mode, 1.0) if mode != "none" else DriftSpec()),
-                   estimate)
-    return run
+    return Run(SimConfig(scene="garage", frames=10, drift=DriftSpec(mode, 1.0) if mode != "none" else DriftSpec()),
+               estimate)
 
 
 def _limits(recs, true_rot=0.1):
@@ -359,12 +357,11 @@ def test_an_episode_starting_as_a_window_ends_is_judged_from_the_next_window():
 def test_an_episode_after_the_last_window_is_not_scored():
     """An episode that starts after the bag's last window (no window to alarm in) is neither detected nor missed:
     the table counts only the episodes its windows cover."""
-    run = _runs_for_cells()
     recs = records(["OK", "WARN", "OK", "OK"])  # ends up to 3.8
     episodes = [{"start": 0.9, "end": 3.0, "rot_rate": 0.0, "trans_rate": 0.0},
                 {"start": 10.0, "end": 15.0, "rot_rate": 0.0, "trans_rate": 0.0}]
     assert [h["covered"] for h in episode_hits(recs, episodes)] == [True, False]
-    table = score([(run("r"), recs, {}, {"episodes": episodes})], within=2)
+    table = score([(_run("r"), recs, {}, {"episodes": episodes})], within=2)
     assert table["episodes"] == table["detected"] == 1 and table["detection_rate"] == 1.0
 
 
@@ -374,7 +371,6 @@ def test_clean_stretches_of_drift_bags_count_their_own_minutes_and_only_false_al
     Three alarms there: one where the SLAM truly drifted past the limit (confirmed, strict only), two false
     (one before, one after the episode). A drift-free bag of 1 min adds 1 false WARN: its (speed, estimate)
     cell holds 3 false WARNs in 2.6 min."""
-    run = _runs_for_cells()
     levels = ["OK"] * 20
     levels[2] = levels[5] = levels[12] = levels[15] = "WARN"
     drift = _limits(records(levels, dt=6.0))
@@ -382,7 +378,7 @@ def test_clean_stretches_of_drift_bags_count_their_own_minutes_and_only_false_al
     drift[5]["true_rot_rate"] = 1.0  # the episode's window: the estimate truly over the limit
     free = _limits(records(["OK"] * 9 + ["WARN"], dt=6.0))
     truth = {"episodes": [{"start": 30.0, "end": 40.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
-    table = score([(run("none"), free, {}, None), (run("r"), drift, {}, truth)], within=2)
+    table = score([(_run("none"), free, {}, None), (_run("r"), drift, {}, truth)], within=2)
     c = table["clean_stretches"]
     assert c["windows"] == 16 and c["minutes"] == pytest.approx(1.6)
     assert c["false_warn_windows"] == 2 and c["strict_warn_windows"] == 3
@@ -399,11 +395,10 @@ def test_clean_stretches_of_drift_bags_count_their_own_minutes_and_only_false_al
 def test_detected_and_truly_over_counts_only_the_episodes_that_are_both():
     """Two drift bags whose estimates truly pass the limit in the episode's first windows; one is alarmed, the
     other not: 2 truly over, 1 of them detected."""
-    run = _runs_for_cells()
     truth = {"episodes": [{"start": 1.5, "end": 4.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
     alarmed = _limits(records(["OK", "WARN", "OK", "OK", "OK"]), true_rot=1.0)
     quiet = _limits(records(["OK"] * 5), true_rot=1.0)
-    table = score([(run("r"), alarmed, {}, truth), (run("t"), quiet, {}, truth)], within=2)
+    table = score([(_run("r"), alarmed, {}, truth), (_run("t"), quiet, {}, truth)], within=2)
     assert (table["detected"], table["episodes"]) == (1, 2)
     assert (table["truly_over"], table["detected_truly_over"]) == (2, 1)
     (cell,) = table["cells"]
@@ -421,19 +416,19 @@ def test_a_true_drift_right_at_the_limit_is_real_drift():
 def test_cells_keep_each_estimate_apart():
     """At one speed, the simulator's odometry and KISS-ICP are two cells: a false WARN of the one's drift-free
     bag and the other's detection do not mix."""
-    run = _runs_for_cells()
     truth = {"episodes": [{"start": 1.5, "end": 4.0, "rot_rate": 0.0, "trans_rate": 0.0}]}
     free_sim = _limits(records(["OK"] * 9 + ["WARN"], dt=6.0))
     free_kiss = _limits(records(["OK"] * 10, dt=6.0))
-    table = score([(run("none", "sim"), free_sim, {}, None), (run("none", "kiss"), free_kiss, {}, None),
-                   (run("r", "sim"), _limits(records(["OK"] * 5)), {}, truth),
-                   (run("r", "kiss"), _limits(records(["OK", "WARN", "OK", "OK", "OK"])), {}, truth)], within=2)
+    table = score([(_run("none", "sim"), free_sim, {}, None), (_run("none", "kiss"), free_kiss, {}, None),
+                   (_run("r", "sim"), _limits(records(["OK"] * 5)), {}, truth),
+                   (_run("r", "kiss"), _limits(records(["OK", "WARN", "OK", "OK", "OK"])), {}, truth)], within=2)
     cells = {c["estimate"]: c for c in table["cells"]}
     assert set(cells) == {"sim", "kiss"}
     assert (cells["sim"]["false_warns"], cells["sim"]["detected"], cells["sim"]["episodes"]) == (1, 0, 1)
     assert (cells["kiss"]["false_warns"], cells["kiss"]["detected"], cells["kiss"]["episodes"]) == (0, 1, 1)
     # 1 min of drift-free bag and the drift bag's first window (1 s, before the episode) in each
-    assert cells["sim"]["minutes"] == pytest.approx(1 + 1 / 60) and cells["kiss"]["minutes"] == pytest.approx(1 + 1 / 60)
+    assert cells["sim"]["minutes"] == pytest.approx(1 + 1 / 60)
+    assert cells["kiss"]["minutes"] == pytest.approx(1 + 1 / 60)
 
 
 def test_accuracy_ratios_are_medians_within_an_episode_and_over_episodes():
@@ -441,7 +436,6 @@ def test_accuracy_ratios_are_medians_within_an_episode_and_over_episodes():
     more episodes read 0.5 and 3.0: the cell's ratio is the median over episodes, 0.5 (not the mean 1.33)."""
     from topometric_ros.experiments.alarms import rate_accuracy
 
-    run = _runs_for_cells()
     reads = [1.0, 1.0, 4.0, 0.0, 1.0, 0.0, 6.0]  # windows 0-2: episode 1; 4: episode 2; 6: episode 3
     recs = [{**r, "rot_rate": v, "trans_rate": 0.0} for r, v in zip(_limits(records(["OK"] * 7)), reads)]
     inj = np.radians(2.0)
@@ -449,16 +443,15 @@ def test_accuracy_ratios_are_medians_within_an_episode_and_over_episodes():
                 {"start": 3.9, "end": 4.9, "rot_rate": inj, "trans_rate": 0.0},
                 {"start": 5.9, "end": 6.9, "rot_rate": inj, "trans_rate": 0.0}]
     assert [a["rot_rate"] for a in rate_accuracy(recs, episodes)] == pytest.approx([0.5, 0.5, 3.0])
-    (cell,) = score([(run("r"), recs, {}, {"episodes": episodes})], within=2)["cells"]
+    (cell,) = score([(_run("r"), recs, {}, {"episodes": episodes})], within=2)["cells"]
     assert cell["rot_rate"] == pytest.approx(0.5)
 
 
 def test_a_dropped_window_does_not_stretch_the_time_the_others_stand_for():
     """Windows every 3 s with one missing: each stands for 3 s (the median spacing), 99 windows are 4.95 min."""
-    run = _runs_for_cells()
     recs = records(["OK"] * 100, dt=3.0)
     del recs[50]
-    table = score([(run("none"), recs, {}, None)], within=2)
+    table = score([(_run("none"), recs, {}, None)], within=2)
     assert table["drift_free"]["minutes"] == pytest.approx(99 * 3.0 / 60)
 
 
@@ -466,10 +459,9 @@ def test_rate_margins_look_at_the_first_windows_of_an_episode_only():
     """An episode's rate is the largest of its first ``within`` windows: a larger reading in the third is not."""
     from topometric_ros.experiments.alarms import rate_margins
 
-    run = _runs_for_cells()
     recs = [{**r, "rot_rate": v, "trans_rate": 0.0}
             for r, v in zip(records(["OK"] * 5), [0.1, 0.6, 0.7, 5.0, 0.1])]
-    m = rate_margins([(run("r"), recs, {}, {"episodes": [{"start": 0.9, "end": 4.0}]})], within=2)
+    m = rate_margins([(_run("r"), recs, {}, {"episodes": [{"start": 0.9, "end": 4.0}]})], within=2)
     assert m["rot_rate"]["episode_min"] == 0.7
 
 
@@ -495,17 +487,15 @@ def test_calibration_and_evaluation_use_their_own_trajectory_seeds_and_speeds_th
 def test_a_setting_that_misses_a_simulated_odometry_episode_is_never_chosen():
     """The rate sweep's scene of test_the_rate_sweep_picks_...: margin 4 is quiet (no false WARN) but misses the
     episode on the simulator's own odometry, margin 2 is noisy: with those two only, nothing is chosen."""
-    from topometric_ros.experiments.alarms import Run, sweep_rates
-    from topometric_ros.sim.drift import DriftSpec
-    from topometric_ros.sim.writer import SimConfig
+    from topometric_ros.experiments.alarms import sweep_rates
 
-    def run(trans):
+    def windows(trans):
         recs = records(["OK"] * len(trans))
         for r, v in zip(recs, trans):
             r.update(pne=-8.0, cpv=1e-4, n_planes=40, rot_rate=0.1, trans_rate=v, speed=0.0, turn_rate=0.0)
         return recs
-    runs = [(Run(SimConfig(scene="garage", frames=10)), run([0.09] * 45 + [0.25] + [0.09] * 14), {}, None),
-            (Run(SimConfig(scene="garage", frames=10, drift=DriftSpec("t", 1.0))), run([0.09] * 20 + [0.34] * 6 + [0.09] * 4),
+    runs = [(_run(), windows([0.09] * 45 + [0.25] + [0.09] * 14), {}, None),
+            (_run("t"), windows([0.09] * 20 + [0.34] * 6 + [0.09] * 4),
              {}, {"episodes": [{"start": 19.9, "end": 26.0, "rot_rate": 0.0, "trans_rate": 0.25}]})]
     grid = {"noise_margin": (2.0, 4.0), "noise_quantile": (0.75,), "noise_max_factor": (10.0,)}
     sweep, chosen = sweep_rates(runs, HealthConfig(warn_persist=1, rate_persist=1), 2, 1.0, grid)
