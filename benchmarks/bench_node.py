@@ -41,6 +41,7 @@ from pathlib import Path
 import yaml
 
 from benchmarks.common import OUT, record
+from topometric_ros.health import LEVELS
 
 ROOT = Path(__file__).resolve().parents[1]
 PLAYER = ROOT / "test" / "ros_player.py"
@@ -108,7 +109,7 @@ class _Diagnostics:
         for s in arr.status:
             values = {kv.key: kv.value for kv in s.values}
             if s.name.endswith(": map consistency") and "window_end" in values:
-                level = {0: "OK", 1: "WARN", 2: "ERROR"}.get(s.level[0] if isinstance(s.level, bytes) else s.level)
+                level = LEVELS[s.level[0] if isinstance(s.level, bytes) else s.level]
                 self.windows.setdefault(float(values["window_end"]), (now, values, level))
 
     def close(self):

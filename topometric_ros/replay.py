@@ -456,7 +456,7 @@ def why_no_scans(summary: dict, topics: dict[str, tuple[str, int]], config: Conf
 
 def _last(summary: dict, counter: str) -> str:
     """The last reason the monitor counted under ``counter`` (its last error of any kind when none)."""
-    return summary.get("last_error_of", {}).get(counter) or summary["last_monitor_error"]
+    return summary["last_error_of"].get(counter) or summary["last_monitor_error"]
 
 
 def _slow_odometry(every: float, n: int, gap: float) -> str:
