@@ -438,14 +438,20 @@ def test_stale_when_input_stops_in_the_callers_clock():
     assert level == "STALE" and "scans" in why
 
 
-def test_a_clock_fault_is_an_error_status_for_stale_after_s_then_clears():
-    m = Monitor(config(**{"health.stale_after_s": 2.0, "health.clock_jump_s": 0.5}), floor_scan, floor_window)
+def _a_cloud_ahead_of_its_clock(m: Monitor) -> bool:
+    """Odometry and three clouds stamped on their receive clock (100-100.45 s), then a cloud received at 101 s
+    stamped 1 s ahead: what add_scan says of it."""
     for k in range(10):
         m.add_pose(100.0 + 0.05 * k, base_pose(100.0 + 0.05 * k), received=100.0 + 0.05 * k)
     for t in (100.1, 100.2, 100.3):
         assert m.add_scan(t - 0.1, floor_points(), received=t)
     assert m.clock_status(100.4) is None
-    assert not m.add_scan(101.9, floor_points(), received=101.0)  # stamped 1 s ahead of its clock: dropped
+    return m.add_scan(101.9, floor_points(), received=101.0)
+
+
+def test_a_clock_fault_is_an_error_status_for_stale_after_s_then_clears():
+    m = Monitor(config(**{"health.stale_after_s": 2.0, "health.clock_jump_s": 0.5}), floor_scan, floor_window)
+    assert not _a_cloud_ahead_of_its_clock(m)  # dropped
     level, why = m.clock_status(102.9)
     assert level == "ERROR" and "cloud stamps jumped +1.00 s" in why
     assert m.clock_status(103.5) is None  # 2.5 s after the fault
@@ -595,10 +601,9 @@ def test_warm_up_runs_its_synthetic_scans_to_a_scored_window(model):
 def test_close_without_a_flush_finishes_every_queued_scan_in_every_stage():
     """close() (drain) right after feeding: the scans still queued at the input and between the stages are
     processed before the threads stop; the second stage does not stop while the first still hands it scans."""
-    cfg = config(**{"window.queue_size": 16})
     import threading
 
-    m = Monitor(cfg, None, floor_window, live=True, stages=split_floor_scan(0.01))
+    m = Monitor(config(**{"window.queue_size": 16}), None, floor_window, live=True, stages=split_floor_scan(0.01))
     feed(m, 100.0 + np.arange(9) / 5.0)
     closer = threading.Thread(target=m.close, daemon=True)
     closer.start()
@@ -733,10 +738,6 @@ def test_a_failing_window_consumer_is_told_in_last_error():
 
 def test_a_cloud_dropped_for_its_clock_is_one_of_the_dropped_scans():
     m = Monitor(config(**{"health.clock_jump_s": 0.5}), floor_scan, floor_window)
-    for k in range(10):
-        m.add_pose(100.0 + 0.05 * k, base_pose(100.0 + 0.05 * k), received=100.0 + 0.05 * k)
-    for t in (100.1, 100.2, 100.3):
-        m.add_scan(t - 0.1, floor_points(), received=t)
-    assert not m.add_scan(101.9, floor_points(), received=101.0)  # 1 s ahead of its clock
+    assert not _a_cloud_ahead_of_its_clock(m)
     c = m.counters
     assert c["dropped_clock"] == 1 and c["dropped_scans"] == 1
